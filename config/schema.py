@@ -1,0 +1,328 @@
+"""YAML -> frozen dataclasses, validated before anything is opened.
+
+Every config file is a YAML mapping that carries ``schema`` (what kind of file it is) and
+``version`` (an integer the reader supports), then the keys of one frozen dataclass. The file is
+parsed with PyYAML's ``SafeLoader`` (the loader behind ``yaml.safe_load``); we walk its node tree
+instead of the plain Python objects so that every error can name the line it comes from.
+
+What is refused, each with one message naming file, line, key path and expectation:
+unknown keys, missing keys, duplicate keys, wrong types, non-finite numbers, values outside the
+range declared with :func:`spec`, and inconsistent values that a dataclass's ``__post_init__``
+reports by raising :class:`ConfigValueError`.
+
+Supported field types: ``float``, ``int``, ``bool``, ``str``, ``Literal[...]``, ``X | None``,
+``tuple[X, ...]``, fixed-length ``tuple[X, Y, Z]``, ``dict[str, X]``, nested dataclasses, and a
+union of dataclasses told apart by a ``Literal`` field they share (e.g. ``kind: hold``).
+
+YAML 1.1 trap: PyYAML reads ``4e-6`` (no dot) as a *string*. A plain (unquoted) scalar that
+Python's ``float()`` accepts is taken as a number for float fields; a quoted one is not.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from pathlib import Path
+from typing import Any, Literal, TypeVar, get_args, get_origin
+
+import yaml
+
+T = TypeVar("T")
+
+__all__ = [
+    "ConfigError",
+    "ConfigValueError",
+    "load_config",
+    "load_config_text",
+    "spec",
+]
+
+
+class ConfigError(Exception):
+    """A user's config file is wrong. ``str()`` is the one-line message shown to the user."""
+
+    def __init__(self, file: str, line: int | None, key: str | None, message: str) -> None:
+        self.file, self.line, self.key, self.message = file, line, key, message
+        super().__init__(str(self))
+
+    def __str__(self) -> str:
+        where = self.file if self.line is None else f"{self.file}:{self.line}"
+        return f"{where}: {self.key}: {self.message}" if self.key else f"{where}: {self.message}"
+
+
+class ConfigValueError(ValueError):
+    """Raised by a config dataclass (``__post_init__``) for an inconsistent value.
+
+    ``key`` is the field name (or dotted path) relative to that dataclass; the loader turns it
+    into the full key path and line of the file.
+    """
+
+    def __init__(self, key: str, message: str) -> None:
+        self.key, self.message = key, message
+        super().__init__(f"{key}: {message}")
+
+
+def spec(
+    default: Any = dataclasses.MISSING,
+    *,
+    ge: float | None = None,
+    gt: float | None = None,
+    le: float | None = None,
+    lt: float | None = None,
+    doc: str = "",
+) -> Any:
+    """A dataclass field with a range (applied to a number or each number of a tuple) and a doc.
+
+    Mutable defaults are not allowed; use tuples.
+    """
+    meta = {"ge": ge, "gt": gt, "le": le, "lt": lt, "doc": doc}
+    return dataclasses.field(default=default, metadata=meta)
+
+
+def load_config(path: str | Path, cls: type[T], *, schema: str, versions: tuple[int, ...] = (1,)
+                ) -> T:
+    """Read ``path`` and build ``cls`` from it; :class:`ConfigError` on any problem."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(str(path), None, None, f"cannot read: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(str(path), None, None, "not a UTF-8 text file") from None
+    return load_config_text(text, cls, schema=schema, versions=versions, file_label=str(path))
+
+
+def load_config_text(text: str, cls: type[T], *, schema: str, versions: tuple[int, ...] = (1,),
+                     file_label: str = "<string>") -> T:
+    """Like :func:`load_config` for text already in memory (``file_label`` names it)."""
+    loader = yaml.SafeLoader(text)
+    try:
+        root = loader.get_single_node()
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        line = mark.line + 1 if mark is not None else None
+        raise ConfigError(file_label, line, None, f"not valid YAML: {exc.problem}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(file_label, None, None, f"not valid YAML: {exc}") from None
+    finally:
+        loader.dispose()
+    walker = _Walker(file_label, loader)
+    if root is None:
+        raise ConfigError(file_label, 1, None, "empty file; expected a mapping with "
+                          f"'schema: {schema}' and 'version'")
+    if not isinstance(root, yaml.MappingNode):
+        raise walker.error(root, "", "expected a mapping at the top of the file")
+    entries = walker.mapping(root, "")
+    if "schema" not in entries:
+        raise walker.error(root, "schema", f"missing key; expected 'schema: {schema}'")
+    got_schema = walker.scalar(entries["schema"][1], "schema")
+    if got_schema != schema:
+        raise walker.error(entries["schema"][1], "schema",
+                           f"expected {schema!r}, got {got_schema!r} (wrong kind of file?)")
+    if "version" not in entries:
+        raise walker.error(root, "version", f"missing key; expected one of {list(versions)}")
+    got_version = walker.scalar(entries["version"][1], "version")
+    if isinstance(got_version, bool) or got_version not in versions:
+        raise walker.error(entries["version"][1], "version",
+                           f"unsupported version {got_version!r}; this fasthex reads "
+                           f"{' or '.join(map(str, versions))}")
+    body = {k: v for k, v in entries.items() if k not in ("schema", "version")}
+    return walker.dataclass_from(cls, root, body, "")
+
+
+Entries = dict[str, tuple[yaml.Node, yaml.Node]]
+
+
+class _Walker:
+    def __init__(self, file_label: str, loader: yaml.SafeLoader) -> None:
+        self.file = file_label
+        self.loader = loader
+
+    # -- errors and primitives -------------------------------------------------------------
+    def error(self, node: yaml.Node, key: str, message: str) -> ConfigError:
+        return ConfigError(self.file, node.start_mark.line + 1, key or None, message)
+
+    def scalar(self, node: yaml.Node, key: str) -> Any:
+        if not isinstance(node, yaml.ScalarNode):
+            kind = "a mapping" if isinstance(node, yaml.MappingNode) else "a list"
+            raise self.error(node, key, f"expected a single value, got {kind}")
+        return self.loader.construct_object(node, deep=True)
+
+    def mapping(self, node: yaml.Node, key: str) -> Entries:
+        if not isinstance(node, yaml.MappingNode):
+            raise self.error(node, key, "expected a mapping (key: value lines)")
+        entries: Entries = {}
+        for key_node, value_node in node.value:
+            name = self.loader.construct_object(key_node, deep=True)
+            if not isinstance(name, str):
+                raise self.error(key_node, key, f"keys must be names, got {name!r}")
+            if name in entries:
+                raise self.error(key_node, _join(key, name), "duplicate key")
+            entries[name] = (key_node, value_node)
+        return entries
+
+    # -- typed conversion -----------------------------------------------------------------
+    def convert(self, tp: Any, node: yaml.Node, key: str, meta: dict[str, Any]) -> Any:
+        origin = get_origin(tp)
+        if tp is Any:
+            return self.loader.construct_object(node, deep=True)
+        if dataclasses.is_dataclass(tp) and isinstance(tp, type):
+            return self.dataclass_from(tp, node, self.mapping(node, key), key)
+        if origin in (typing.Union, types.UnionType):
+            return self.union(tp, node, key, meta)
+        if origin is Literal:
+            value = self.scalar(node, key)
+            choices = get_args(tp)
+            if value not in choices or isinstance(value, bool) != isinstance(choices[0], bool):
+                raise self.error(node, key, f"expected one of {', '.join(map(repr, choices))}; "
+                                 f"got {value!r}")
+            return value
+        if origin is tuple:
+            return self.sequence(tp, node, key, meta)
+        if origin is dict:
+            key_tp, value_tp = get_args(tp)
+            if key_tp is not str:
+                raise TypeError(f"config dict keys must be str, not {key_tp}")
+            entries = self.mapping(node, key)
+            return types.MappingProxyType({
+                name: self.convert(value_tp, vnode, _join(key, name), meta)
+                for name, (_, vnode) in entries.items()
+            })
+        if tp is float:
+            return self.number(node, key, meta)
+        if tp is int:
+            value = self.scalar(node, key)
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise self.error(node, key, f"expected an integer{_range_text(meta)}, "
+                                 f"got {value!r}")
+            self.check_range(node, key, value, meta)
+            return value
+        if tp is bool:
+            value = self.scalar(node, key)
+            if not isinstance(value, bool):
+                raise self.error(node, key, f"expected true or false, got {value!r}")
+            return value
+        if tp is str:
+            value = self.scalar(node, key)
+            if not isinstance(value, str):
+                raise self.error(node, key, f"expected a text value, got {value!r}")
+            return value
+        raise TypeError(f"unsupported config field type {tp!r} at {key}")
+
+    def number(self, node: yaml.Node, key: str, meta: dict[str, Any]) -> float:
+        value = self.scalar(node, key)
+        if isinstance(value, str) and getattr(node, "style", None) is None:
+            try:  # YAML 1.1 reads 4e-6 as text: accept a plain scalar Python can read.
+                value = float(value)
+            except ValueError:
+                pass
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise self.error(node, key, f"expected a number{_range_text(meta)}, got {value!r}")
+        if not math.isfinite(value):
+            raise self.error(node, key, f"expected a finite number, got {value!r}")
+        self.check_range(node, key, value, meta)
+        return float(value)
+
+    def check_range(self, node: yaml.Node, key: str, value: float, meta: dict[str, Any]) -> None:
+        ge, gt, le, lt = (meta.get(k) for k in ("ge", "gt", "le", "lt"))
+        if ((ge is not None and value < ge) or (gt is not None and value <= gt)
+                or (le is not None and value > le) or (lt is not None and value >= lt)):
+            raise self.error(node, key, f"expected a number{_range_text(meta)}, got {value!r}")
+
+    def sequence(self, tp: Any, node: yaml.Node, key: str, meta: dict[str, Any]) -> tuple[Any, ...]:
+        args = get_args(tp)
+        if not isinstance(node, yaml.SequenceNode):
+            shape = "a list" if len(args) == 2 and args[1] is Ellipsis else f"a list of {len(args)}"
+            raise self.error(node, key, f"expected {shape} (e.g. [1, 2, 3])")
+        items = node.value
+        if len(args) == 2 and args[1] is Ellipsis:
+            item_types = [args[0]] * len(items)
+        else:
+            if len(items) != len(args):
+                raise self.error(node, key, f"expected a list of {len(args)} values, "
+                                 f"got {len(items)}")
+            item_types = list(args)
+        return tuple(self.convert(t, n, f"{key}[{i}]", meta)
+                     for i, (t, n) in enumerate(zip(item_types, items, strict=True)))
+
+    def union(self, tp: Any, node: yaml.Node, key: str, meta: dict[str, Any]) -> Any:
+        members = [a for a in get_args(tp) if a is not type(None)]
+        if type(None) in get_args(tp) and isinstance(node, yaml.ScalarNode) and \
+                self.loader.construct_object(node) is None:
+            return None
+        if len(members) == 1:
+            return self.convert(members[0], node, key, meta)
+        if not all(dataclasses.is_dataclass(m) for m in members):
+            raise TypeError(f"config unions must be of dataclasses, got {tp!r} at {key}")
+        tag = _discriminator(members)
+        entries = self.mapping(node, key)
+        options = {v: m for m in members for v in get_args(typing.get_type_hints(m)[tag])}
+        if tag not in entries:
+            raise self.error(node, _join(key, tag), "missing key; expected one of "
+                             + ", ".join(map(repr, options)))
+        tag_node = entries[tag][1]
+        value = self.scalar(tag_node, _join(key, tag))
+        if value not in options:
+            raise self.error(tag_node, _join(key, tag), "expected one of "
+                             + ", ".join(map(repr, options)) + f"; got {value!r}")
+        return self.dataclass_from(options[value], node, entries, key)
+
+    def dataclass_from(self, cls: type[T], node: yaml.Node, entries: Entries, key: str) -> T:
+        hints = typing.get_type_hints(cls)
+        field_list = [f for f in dataclasses.fields(cls) if f.init]  # type: ignore[arg-type]
+        known = {f.name for f in field_list}
+        for name, (key_node, _) in entries.items():
+            if name not in known:
+                raise self.error(key_node, _join(key, name),
+                                 f"unknown key; expected one of: {', '.join(sorted(known))}")
+        kwargs: dict[str, Any] = {}
+        for f in field_list:
+            if f.name in entries:
+                kwargs[f.name] = self.convert(hints[f.name], entries[f.name][1],
+                                              _join(key, f.name), dict(f.metadata))
+            elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+                raise self.error(node, _join(key, f.name),
+                                 f"missing key; expected {_describe(hints[f.name], f.metadata)}")
+        try:
+            return cls(**kwargs)
+        except ConfigValueError as exc:
+            first = exc.key.split(".")[0].split("[")[0]
+            where = entries[first][1] if first in entries else node
+            raise self.error(where, _join(key, exc.key), exc.message) from None
+
+
+def _join(prefix: str, name: str) -> str:
+    return f"{prefix}.{name}" if prefix else name
+
+
+def _discriminator(members: list[Any]) -> str:
+    common: set[str] | None = None
+    for m in members:
+        names = {n for n, t in typing.get_type_hints(m).items() if get_origin(t) is Literal}
+        common = names if common is None else common & names
+    if not common:
+        raise TypeError(f"dataclass union {members} has no shared Literal field")
+    return sorted(common)[0]
+
+
+def _range_text(meta: dict[str, Any]) -> str:
+    parts = [f"{op} {meta[k]:g}" for k, op in (("ge", ">="), ("gt", ">"), ("le", "<="),
+                                                ("lt", "<")) if meta.get(k) is not None]
+    return " " + " and ".join(parts) if parts else ""
+
+
+def _describe(tp: Any, meta: Any) -> str:
+    origin = get_origin(tp)
+    if tp is float:
+        return "a number" + _range_text(dict(meta))
+    if tp is int:
+        return "an integer" + _range_text(dict(meta))
+    if origin is tuple:
+        args = get_args(tp)
+        return "a list" if args[-1] is Ellipsis else f"a list of {len(args)} values"
+    if dataclasses.is_dataclass(tp):
+        return "a mapping"
+    return getattr(tp, "__name__", str(tp))
+

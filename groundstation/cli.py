@@ -1,0 +1,72 @@
+"""The ``fasthex`` command line: one subcommand per module of :mod:`groundstation.commands`.
+
+Errors a user can fix (a bad config file, a port that cannot be opened) are printed as one line
+without a traceback and give exit code 2; Ctrl-C gives 130.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import pkgutil
+import sys
+from types import ModuleType
+
+import groundstation.commands as commands_pkg
+from config.schema import ConfigError
+
+
+class UserError(Exception):
+    """A problem the user can fix (missing file, unknown device); printed without traceback."""
+
+
+def _command_modules() -> list[ModuleType]:
+    mods = []
+    for info in sorted(pkgutil.iter_modules(commands_pkg.__path__), key=lambda i: i.name):
+        if not info.name.startswith("_"):
+            mods.append(importlib.import_module(f"{commands_pkg.__name__}.{info.name}"))
+    return mods
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="fasthex",
+        description="Ground station for the FAST-Hex tilting hexarotor (500 Hz, real or "
+        "emulated hardware).",
+    )
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="more log output (-vv for debug)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for mod in _command_modules():
+        p = sub.add_parser(mod.NAME, help=mod.HELP, description=mod.HELP)
+        mod.add_arguments(p)
+        p.set_defaults(_run=mod.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    if not getattr(args, "_run", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args._run(args))
+    except ConfigError as exc:
+        print(f"fasthex: config error: {exc}", file=sys.stderr)
+        return 2
+    except UserError as exc:
+        print(f"fasthex: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("fasthex: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Device emulators: the same bytes as the hardware, over pseudo-terminals and UDP."""
