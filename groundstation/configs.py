@@ -1,0 +1,17 @@
+"""Loading the typed configuration files (the composition root's entry to ``config/``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from config import find_config
+from config.schema import load_config
+from controller.params import VEHICLE_SCHEMA, VehicleParams
+
+DEFAULT_VEHICLE = "fasthex"
+
+
+def load_vehicle(name_or_path: str | Path = DEFAULT_VEHICLE) -> VehicleParams:
+    """A shipped vehicle by name (``fasthex``, ``fasthex-mini``) or a vehicle YAML file."""
+    return load_config(find_config("vehicles", name_or_path), VehicleParams,
+                       schema=VEHICLE_SCHEMA, versions=(1,))
