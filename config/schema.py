@@ -20,6 +20,7 @@ Python's ``float()`` accepts is taken as a number for float fields; a quoted one
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import types
@@ -214,10 +215,9 @@ class _Walker:
     def number(self, node: yaml.Node, key: str, meta: dict[str, Any]) -> float:
         value = self.scalar(node, key)
         if isinstance(value, str) and getattr(node, "style", None) is None:
-            try:  # YAML 1.1 reads 4e-6 as text: accept a plain scalar Python can read.
+            # YAML 1.1 reads 4e-6 as text: accept a plain scalar Python can read.
+            with contextlib.suppress(ValueError):
                 value = float(value)
-            except ValueError:
-                pass
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise self.error(node, key, f"expected a number{_range_text(meta)}, got {value!r}")
         if not math.isfinite(value):

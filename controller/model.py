@@ -52,7 +52,7 @@ class VehicleModel:
     def __init__(self, params: VehicleParams) -> None:
         self.params = params
         idx = np.arange(N_ROTORS)
-        self.arm_yaw_rad: FloatArray = idx * (math.pi / 3.0)
+        self.arm_yaw_rad: FloatArray = idx.astype(np.float64) * (math.pi / 3.0)
         l_m = params.geometry.arm_length_m
         self.rotor_positions_b_m: FloatArray = np.stack(
             [l_m * np.cos(self.arm_yaw_rad), l_m * np.sin(self.arm_yaw_rad), np.zeros(N_ROTORS)],
@@ -85,7 +85,7 @@ class VehicleModel:
         c = np.cos(self.tilt_signs * alpha_rad)
         cy, sy = np.cos(self.arm_yaw_rad), np.sin(self.arm_yaw_rad)
         # Rz(y) Rx(a) e3 = Rz(y) [0, -sin a, cos a]
-        return np.stack([sy * s, -cy * s, c], axis=1)
+        return np.stack([sy * s, -cy * s, c], axis=1).astype(np.float64, copy=False)
 
     def allocation_parts(self, alpha_rad: float) -> tuple[FloatArray, FloatArray]:
         """``(F1, F2)``: body force and body torque per unit thrust, each shape (3, 6)."""
@@ -100,7 +100,7 @@ class VehicleModel:
         return np.vstack([f1, f2])
 
     def singular_values(self, alpha_rad: float) -> FloatArray:
-        return np.linalg.svd(self.allocation(alpha_rad), compute_uv=False)
+        return np.linalg.svd(self.allocation(alpha_rad), compute_uv=False).astype(np.float64)
 
     def rank(self, alpha_rad: float, rel_tol: float = 1e-4) -> int:
         """Numerical rank of F: singular values above ``rel_tol * sigma_max`` (paper-notes 4:
@@ -108,9 +108,10 @@ class VehicleModel:
         sv = self.singular_values(alpha_rad)
         return int(np.sum(sv > rel_tol * sv[0]))
 
-    def condition_number(self, alpha_rad: float) -> float:
+    def condition_number(self, alpha_rad: float, rel_tol: float = 1e-4) -> float:
+        """sigma_max / sigma_min of F; ``inf`` where F is numerically rank-deficient."""
         sv = self.singular_values(alpha_rad)
-        return float(sv[0] / sv[-1]) if sv[-1] > 0.0 else math.inf
+        return float(sv[0] / sv[-1]) if sv[-1] > rel_tol * sv[0] else math.inf
 
     # -- propellers -------------------------------------------------------------------------
     def thrust_from_spin(self, spin_hz: npt.ArrayLike) -> FloatArray:
@@ -121,7 +122,7 @@ class VehicleModel:
     def spin_from_thrust(self, thrust_n: npt.ArrayLike) -> FloatArray:
         """Inverse of :meth:`thrust_from_spin`; negative thrusts map to 0 Hz."""
         f = np.maximum(np.asarray(thrust_n, dtype=float), 0.0)
-        return np.sqrt(f / self.c_f)
+        return np.asarray(np.sqrt(f / self.c_f), dtype=np.float64)
 
     def force_efficiency(self, alpha_rad: float, thrusts_n: npt.ArrayLike) -> float:
         """eta_f = |sum_i f_i^B| / sum_i f_i (paper eq. force_efficiency), in [0, 1]."""

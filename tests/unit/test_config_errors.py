@@ -1,0 +1,143 @@
+"""Malformed config files are refused with one precise message: file, line, key path and what
+was expected; no traceback reaches the user."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from config import find_config
+from config.schema import ConfigError
+from groundstation.cli import main
+from groundstation.configs import load_vehicle
+
+GOOD = find_config("vehicles", "fasthex").read_text()
+
+
+def _line_of(text: str, fragment: str) -> int:
+    return next(i for i, line in enumerate(text.splitlines(), 1) if fragment in line)
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "vehicle.yaml"
+    path.write_text(text)
+    return path
+
+
+# (name, edit applied to the good file, line fragment the error points at, key, message)
+CASES = [
+    ("unknown key", ("mass_kg: 3.1", "mass_kgg: 3.1"), "mass_kgg", "mass_kgg",
+     "unknown key; expected one of: controller, description, geometry, gravity_m_s2, "
+     "inertia_diag_kg_m2, mass_kg, name, rotors, tilt"),
+    ("wrong type", ("mass_kg: 3.1", "mass_kg: heavy"), "mass_kg", "mass_kg",
+     "expected a number > 0 and <= 100, got 'heavy'"),
+    ("out of range", ("mass_kg: 3.1", "mass_kg: -3"), "mass_kg", "mass_kg",
+     "expected a number > 0 and <= 100, got -3"),
+    ("bool for a number", ("mass_kg: 3.1", "mass_kg: yes"), "mass_kg", "mass_kg",
+     "expected a number > 0 and <= 100, got True"),
+    ("quoted number", ("mass_kg: 3.1", 'mass_kg: "3.1"'), "mass_kg", "mass_kg",
+     "expected a number > 0 and <= 100, got '3.1'"),
+    ("not finite", ("mass_kg: 3.1", "mass_kg: .nan"), "mass_kg", "mass_kg",
+     "expected a finite number, got nan"),
+    ("min spin >= max spin", ("min_spin_hz: 16.0", "min_spin_hz: 110.0"), "min_spin_hz",
+     "rotors.min_spin_hz", "must be below max_spin_hz (102 Hz), got 110"),
+    ("tilt beyond the mechanical limit", ("max_tilt_deg: 35.0", "max_tilt_deg: 40.0"),
+     "max_tilt_deg", "tilt.max_tilt_deg", "exceeds the mechanical limit (35 deg), got 40"),
+    ("short list", ("[0.089, 0.091, 0.164]", "[0.089, 0.091]"), "inertia_diag_kg_m2",
+     "inertia_diag_kg_m2", "expected a list of 3 values, got 2"),
+    ("mapping for a value", ("name: fasthex", "name:\n  first: fast\n  second: hex"),
+     "first: fast", "name", "expected a single value, got a mapping"),
+    ("integer expected", ("bisection_iterations: 20", "bisection_iterations: 20.5"),
+     "bisection_iterations", "controller.bisection_iterations",
+     "expected an integer >= 1 and <= 60, got 20.5"),
+    ("wrong schema", ("schema: fasthex.vehicle", "schema: fasthex.session"), "schema:", "schema",
+     "expected 'fasthex.vehicle', got 'fasthex.session' (wrong kind of file?)"),
+    ("unsupported version", ("version: 1", "version: 7"), "version:", "version",
+     "unsupported version 7; this fasthex reads 1"),
+    ("duplicate key", ("mass_kg: 3.1", "mass_kg: 3.1\nmass_kg: 3.2"), "mass_kg: 3.2", "mass_kg",
+     "duplicate key"),
+    ("physically impossible inertia", ("[0.089, 0.091, 0.164]", "[0.01, 0.01, 0.164]"),
+     "inertia_diag_kg_m2", "inertia_diag_kg_m2",
+     "principal moments violate the triangle inequality (not a physical body)"),
+    ("too heavy to fly", ("mass_kg: 3.1", "mass_kg: 5.0"), "mass_kg", "mass_kg",
+     "weight 49.1 N needs >= 20 % thrust margin, but the rotors lift at most 50.6 N at the "
+     "largest tilt"),
+]
+
+
+@pytest.mark.parametrize(("name", "edit", "fragment", "key", "message"), CASES,
+                         ids=[c[0] for c in CASES])
+def test_that_a_malformed_vehicle_file_gives_its_precise_message(
+        tmp_path: Path, name: str, edit: tuple[str, str], fragment: str, key: str,
+        message: str) -> None:
+    # Fixture
+    assert edit[0] in GOOD, name
+    text = GOOD.replace(edit[0], edit[1], 1)
+    path = _write(tmp_path, text)
+    # Test
+    with pytest.raises(ConfigError) as info:
+        load_vehicle(path)
+    # Assert
+    line = _line_of(text, fragment) if name != "missing" else None
+    assert str(info.value) == f"{path}:{line}: {key}: {message}"
+
+
+def test_that_a_missing_key_names_the_enclosing_section(tmp_path: Path) -> None:
+    text = GOOD.replace("  drag_coeff_m: 1.9e-2             # c_f^tau\n", "")
+    path = _write(tmp_path, text)
+    with pytest.raises(ConfigError) as info:
+        load_vehicle(path)
+    assert str(info.value) == (f"{path}:{_line_of(text, 'min_spin_hz')}: rotors.drag_coeff_m: "
+                               "missing key; expected a number >= 0 and <= 1")
+
+
+def test_that_broken_yaml_syntax_gives_the_line(tmp_path: Path) -> None:
+    text = GOOD.replace("mass_kg: 3.1", "mass_kg: [3.1")
+    path = _write(tmp_path, text)
+    with pytest.raises(ConfigError) as info:
+        load_vehicle(path)
+    assert str(info.value).startswith(f"{path}:")
+    assert "not valid YAML" in str(info.value)
+    assert info.value.line is not None and info.value.line >= _line_of(text, "mass_kg")
+
+
+def test_that_an_empty_file_is_refused(tmp_path: Path) -> None:
+    path = _write(tmp_path, "# nothing here\n")
+    with pytest.raises(ConfigError) as info:
+        load_vehicle(path)
+    assert str(info.value) == (f"{path}:1: empty file; expected a mapping with "
+                               "'schema: fasthex.vehicle' and 'version'")
+
+
+def test_that_yaml_exponents_without_a_dot_are_numbers(tmp_path: Path) -> None:
+    # YAML 1.1 reads 4e-6 as text; the loader takes plain scalars Python can read.
+    path = _write(tmp_path, GOOD.replace("tikhonov_k1: 4.0e-6", "tikhonov_k1: 4e-6"))
+    assert load_vehicle(path).controller.tikhonov_k1 == 4e-6
+
+
+def test_that_an_unknown_vehicle_name_lists_the_shipped_ones() -> None:
+    with pytest.raises(ConfigError) as info:
+        load_vehicle("nope")
+    assert str(info.value) == "nope: no such vehicle; shipped vehicles: fasthex, fasthex-mini"
+
+
+def test_that_the_cli_prints_one_line_and_exits_2(tmp_path: Path,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    path = _write(tmp_path, GOOD.replace("mass_kg: 3.1", "mass_kg: -3"))
+    assert main(["analyze", "--vehicle", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"fasthex: config error: {path}:{_line_of(GOOD, 'mass_kg')}: mass_kg: "
+                   "expected a number > 0 and <= 100, got -3\n")
+
+
+def test_that_the_installed_command_shows_no_traceback(tmp_path: Path) -> None:
+    path = _write(tmp_path, GOOD.replace("max_tilt_deg: 35.0", "max_tilt_deg: 40.0"))
+    proc = subprocess.run([sys.executable, "-m", "groundstation", "analyze", "--vehicle",
+                           str(path)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    assert proc.stderr.strip().endswith(
+        "tilt.max_tilt_deg: exceeds the mechanical limit (35 deg), got 40")
