@@ -1,0 +1,1 @@
+"""MikroKopter Flight-Ctrl driver: tk3 and stock framings, message codecs, the FlightCtrl device."""
