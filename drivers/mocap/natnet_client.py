@@ -1,0 +1,415 @@
+"""NatNet client device: handshake, receive thread, latest-pose mailbox, stream health.
+
+Wire protocol: see :mod:`drivers.mocap.natnet` (UDP, little-endian, bitstream 3.0-4.1).
+
+Connection sequence (``start()``, blocking, before the thread runs):
+
+1. a UDP command socket bound to ``(local_ip, 0)`` sends CONNECT to ``server_ip:command_port``
+   (1510) and waits for SERVERINFO (retrying every 0.25 s until ``connect_timeout_s``); the
+   NatNet version and the high-resolution clock frequency come from there;
+2. optionally ``Bitstream,x.y`` (unicast only) to select the bitstream version;
+3. REQUEST_MODELDEF: rigid-body names -> ids; an unknown configured body raises
+   :class:`UnknownBodyError` listing the names the server has.
+
+Data: in unicast mode the server sends frames to the command socket (the address that sent
+CONNECT/KEEPALIVE) and the client repeats KEEPALIVE every ``keepalive_period_s``; in multicast
+mode a data socket bound to ``("", data_port)`` (not to the interface address: on Linux that
+receives nothing) joins ``multicast_group`` on ``local_ip``.
+
+Only datagrams whose source address is ``server_ip`` are accepted (others are counted as
+foreign); datagrams that do not decode are counted as malformed and dropped. When a frame says
+the models changed, MODELDEF is requested again.
+
+Timestamps: a sample's ``t_ns`` is the arrival time on the injected clock minus
+(transmit - mid-exposure) / HighResClockFrequency minus the configured network delay.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import selectors
+import socket
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal
+
+from config.schema import ConfigValueError
+from drivers.mocap import natnet
+from drivers.mocap.frames import FrameConfig, FrameTransform
+from drivers.mocap.pose import (
+    NAN3,
+    NAN4,
+    MocapConnectError,
+    MocapStats,
+    PoseSample,
+    StreamMonitor,
+    TrackingStatus,
+    UnknownBodyError,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class NatNetConfig:
+    """Where the NatNet server is and how to read it. Loadable from YAML (``config.schema``)."""
+
+    server_ip: str = "127.0.0.1"
+    local_ip: str = "127.0.0.1"
+    mode: Literal["unicast", "multicast"] = "unicast"
+    command_port: int = natnet.DEFAULT_COMMAND_PORT
+    data_port: int = natnet.DEFAULT_DATA_PORT
+    multicast_group: str = natnet.DEFAULT_MULTICAST_GROUP
+    body: str = ""  # rigid-body name; empty: the first one the server defines
+    version: str = ""  # requested bitstream version ("3.1"); empty: the server's
+    network_delay_s: float = 0.0
+    keepalive_period_s: float = 1.0
+    connect_timeout_s: float = 3.0
+    frames: FrameConfig = field(default_factory=FrameConfig)
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("unicast", "multicast"):
+            raise ConfigValueError("mode", f"must be 'unicast' or 'multicast', not {self.mode!r}")
+        for key in ("command_port", "data_port"):
+            if not 0 <= getattr(self, key) <= 65535:
+                raise ConfigValueError(key, "must be a UDP port (0..65535)")
+        for key in ("server_ip", "local_ip", "multicast_group"):
+            try:
+                socket.inet_aton(getattr(self, key))
+            except OSError as exc:
+                raise ConfigValueError(key, "must be an IPv4 address") from exc
+        if self.version:
+            try:
+                natnet.parse_version(self.version)
+            except ValueError as exc:
+                raise ConfigValueError("version", str(exc)) from exc
+        if not self.network_delay_s >= 0.0:
+            raise ConfigValueError("network_delay_s", "must be >= 0")
+        if not self.keepalive_period_s > 0.0 or not self.connect_timeout_s > 0.0:
+            raise ConfigValueError("keepalive_period_s", "periods must be > 0")
+
+    @property
+    def name(self) -> str:
+        return f"natnet://{self.server_ip}:{self.command_port}"
+
+
+class NatNetClient:
+    """A :class:`~drivers.mocap.pose.PoseSource` reading one OptiTrack NatNet server.
+
+    ``with NatNetClient(cfg) as c: c.latest()``. ``clock`` returns nanoseconds (the
+    ground-station clock; ``time.monotonic_ns`` by default).
+    """
+
+    def __init__(self, config: NatNetConfig, clock: Callable[[], int] = time.monotonic_ns
+                 ) -> None:
+        self.config = config
+        self._clock = clock
+        self._transform = FrameTransform(config.frames)
+        self.monitor = StreamMonitor(clock)
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._cmd: socket.socket | None = None
+        self._data: socket.socket | None = None
+        self._server_info: natnet.ServerInfo | None = None
+        self._version: natnet.NatNetVersion | None = None
+        self._models: natnet.ModelDefinitions | None = None
+        self._names_by_id: dict[int, str] = {}
+        self._body_id: int | None = None
+        self._latest: PoseSample | None = None
+        self._latest_by_id: dict[int, PoseSample] = {}
+        self._last_frame: natnet.FrameOfData | None = None
+        self._response: natnet.Response | natnet.UnrecognizedRequest | None = None
+        self._frames_seen = 0
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def __enter__(self) -> NatNetClient:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def start(self) -> None:
+        """Open sockets, handshake, resolve the body, start the receive thread."""
+        cfg = self.config
+        try:
+            self._cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            self._cmd.bind((cfg.local_ip, 0))
+            if cfg.mode == "multicast":
+                self._data = _open_multicast(cfg)
+        except OSError as exc:
+            self.close()
+            raise MocapConnectError(cfg.name, f"cannot open sockets: {exc}") from exc
+        try:
+            self._handshake()
+        except BaseException:
+            self.close()
+            raise
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="natnet-rx", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=5.0)
+        self._thread = None
+        for s in (self._cmd, self._data):
+            if s is not None:
+                with contextlib.suppress(OSError):
+                    if s is self._cmd and self._server_info is not None:
+                        s.sendto(natnet._msg(natnet.MessageId.DISCONNECT, b""), self._server)
+                    s.close()
+        self._cmd = self._data = None
+
+    @property
+    def _server(self) -> tuple[str, int]:
+        return (self.config.server_ip, self.config.command_port)
+
+    def _send(self, data: bytes) -> None:
+        if self._cmd is not None:
+            with contextlib.suppress(OSError):
+                self._cmd.sendto(data, self._server)
+
+    def _pump_until(self, done: Callable[[], bool], timeout_s: float,
+                    resend: bytes | None) -> bool:
+        """Receive on the command socket (handshake phase) until ``done()`` or timeout."""
+        assert self._cmd is not None
+        deadline = time.monotonic() + timeout_s
+        next_send = 0.0
+        while not done():
+            now = time.monotonic()
+            if now >= deadline:
+                return False
+            if resend is not None and now >= next_send:
+                self._send(resend)
+                next_send = now + 0.25
+            self._cmd.settimeout(max(1e-3, min(deadline, next_send) - now))
+            try:
+                data, addr = self._cmd.recvfrom(65536)
+            except (TimeoutError, BlockingIOError):
+                continue
+            except OSError:
+                return False
+            self._on_datagram(data, addr)
+        return True
+
+    def _handshake(self) -> None:
+        cfg = self.config
+        if not self._pump_until(lambda: self._server_info is not None, cfg.connect_timeout_s,
+                                natnet.encode_connect("ping")):
+            raise MocapConnectError(cfg.name, f"no SERVERINFO within {cfg.connect_timeout_s} s "
+                                    "(server not running, wrong address or port?)")
+        if cfg.version and natnet.parse_version(cfg.version) != self._version:
+            if cfg.mode != "unicast":
+                raise MocapConnectError(cfg.name, "the bitstream version can only be changed "
+                                        "in unicast mode")
+            self._response = None
+            if not self._pump_until(lambda: self._response is not None, cfg.connect_timeout_s,
+                                    natnet.encode_command(f"Bitstream,{cfg.version}")):
+                raise MocapConnectError(cfg.name, "no answer to the Bitstream command")
+            if not isinstance(self._response, natnet.Response) or self._response.code != 0:
+                raise MocapConnectError(cfg.name, f"server refused bitstream {cfg.version}")
+            with self._cond:
+                self._version = natnet.parse_version(cfg.version)
+        self._models = None
+        if not self._pump_until(lambda: self._models is not None, cfg.connect_timeout_s,
+                                natnet.encode_request_modeldef()):
+            raise MocapConnectError(cfg.name, "no MODELDEF answer")
+        self._resolve_body()
+
+    def _resolve_body(self) -> None:
+        assert self._models is not None
+        ids = self._models.body_ids_by_name()
+        if self.config.body:
+            if self.config.body not in ids:
+                raise UnknownBodyError(self.config.name, f"no rigid body named "
+                                       f"{self.config.body!r}; the server defines "
+                                       f"{sorted(ids) or 'none'}")
+            self._body_id = ids[self.config.body]
+        elif self._models.rigid_bodies:
+            self._body_id = self._models.rigid_bodies[0].body_id
+
+    # ------------------------------------------------------------------ receive
+
+    def _run(self) -> None:
+        sel = selectors.DefaultSelector()
+        for s in (self._cmd, self._data):
+            if s is not None:
+                s.setblocking(False)
+                sel.register(s, selectors.EVENT_READ)
+        unicast = self.config.mode == "unicast"
+        period = self.config.keepalive_period_s
+        next_keepalive = time.monotonic()
+        try:
+            while not self._stop.is_set():
+                now = time.monotonic()
+                if unicast and now >= next_keepalive:
+                    self._send(natnet.encode_keepalive())
+                    next_keepalive = now + period
+                for key, _ in sel.select(timeout=min(0.1, period)):
+                    sock = key.fileobj
+                    assert isinstance(sock, socket.socket)
+                    for _ in range(64):  # drain a burst, then check stop/keepalive again
+                        try:
+                            data, addr = sock.recvfrom(65536)
+                        except (BlockingIOError, InterruptedError):
+                            break
+                        except OSError:
+                            return
+                        self._on_datagram(data, addr)
+        finally:
+            sel.close()
+
+    def _on_datagram(self, data: bytes, addr: tuple[str, int]) -> None:
+        """Handle one datagram. Never raises for any content."""
+        if addr[0] != self.config.server_ip:
+            self.monitor.count_foreign()
+            return
+        rx_t_ns = self._clock()
+        try:
+            msg = natnet.decode_message(data, self._version)
+        except natnet.NatNetDecodeError as exc:
+            self.monitor.count_malformed()
+            log.debug("%s: dropped malformed datagram: %s", self.config.name, exc)
+            return
+        if isinstance(msg, natnet.FrameOfData):
+            self._on_frame(msg, rx_t_ns)
+        elif isinstance(msg, natnet.ServerInfo):
+            if msg.version not in natnet.SUPPORTED_VERSIONS:
+                self.monitor.count_malformed()
+                log.warning("%s: server speaks NatNet %s, supported: %s", self.config.name,
+                            msg.version, natnet.SUPPORTED_VERSIONS)
+                return
+            with self._cond:
+                if self._server_info is None:
+                    self._version = msg.version
+                self._server_info = msg
+                self._cond.notify_all()
+        elif isinstance(msg, natnet.ModelDefinitions):
+            with self._cond:
+                self._models = msg
+                self._names_by_id = {rb.body_id: rb.name for rb in msg.rigid_bodies}
+                if self.config.body:
+                    self._body_id = msg.body_ids_by_name().get(self.config.body, self._body_id)
+                self._cond.notify_all()
+        elif isinstance(msg, natnet.Response | natnet.UnrecognizedRequest):
+            self._response = msg
+
+    def _sample(self, rb: natnet.RigidBodyData | None, body_id: int, frame: int,
+                rx_t_ns: int, t_ns: int, latency_s: float) -> PoseSample:
+        name = self._names_by_id.get(body_id, "")
+        if rb is None:
+            return PoseSample(t_ns, rx_t_ns, frame, body_id, name, TrackingStatus.MISSING,
+                              NAN3, NAN4, latency_s, math.nan)
+        if rb.tracking_valid:
+            try:
+                pos, q = self._transform.to_world(rb.pos, rb.q_xyzw)
+            except ValueError:
+                pos = NAN3
+            if all(math.isfinite(c) for c in pos):
+                return PoseSample(t_ns, rx_t_ns, frame, body_id, name, TrackingStatus.OK,
+                                  pos, q, latency_s, rb.mean_error_m)
+        return PoseSample(t_ns, rx_t_ns, frame, body_id, name, TrackingStatus.INVALID,
+                          NAN3, NAN4, latency_s, rb.mean_error_m)
+
+    def _on_frame(self, frame: natnet.FrameOfData, rx_t_ns: int) -> None:
+        info = self._server_info
+        latency_s = frame.latency_s(info.high_res_clock_hz if info else 0) \
+            + self.config.network_delay_s
+        t_ns = rx_t_ns - round(latency_s * 1e9)
+        self.monitor.on_frame(frame.frame_number, rx_t_ns, latency_s)
+        by_id = {}
+        for rb in frame.rigid_bodies:
+            by_id[rb.body_id] = self._sample(rb, rb.body_id, frame.frame_number, rx_t_ns, t_ns,
+                                             latency_s)
+        bid = self._body_id
+        main = None
+        if bid is not None:
+            main = by_id.get(bid) or self._sample(None, bid, frame.frame_number, rx_t_ns, t_ns,
+                                                  latency_s)
+            self.monitor.on_sample(main)
+        with self._cond:
+            self._last_frame = frame
+            self._latest_by_id = by_id
+            self._latest = main
+            self._frames_seen += 1
+            self._cond.notify_all()
+        if frame.models_changed:
+            self._send(natnet.encode_request_modeldef())
+
+    # ------------------------------------------------------------------ PoseSource
+
+    def latest(self) -> PoseSample | None:
+        """The configured body in the newest frame (None before the first frame)."""
+        return self._latest
+
+    def latest_of(self, name: str) -> PoseSample | None:
+        """Any defined rigid body in the newest frame, by name."""
+        with self._cond:
+            ids = self._models.body_ids_by_name() if self._models else {}
+            if name not in ids:
+                return None
+            bid = ids[name]
+            frame = self._last_frame
+            s = self._latest_by_id.get(bid)
+        if s is None and frame is not None:
+            return self._sample(None, bid, frame.frame_number, 0, 0, math.nan)
+        return s
+
+    def stats(self) -> MocapStats:
+        return self.monitor.snapshot()
+
+    def wait_frames(self, count: int, timeout_s: float) -> bool:
+        """Block until ``count`` more frames have arrived; False on timeout."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            target = self._frames_seen + count
+            while self._frames_seen < target:
+                left = deadline - time.monotonic()
+                if left <= 0.0:
+                    return False
+                self._cond.wait(left)
+        return True
+
+    # ------------------------------------------------------------------ info
+
+    @property
+    def server_info(self) -> natnet.ServerInfo | None:
+        return self._server_info
+
+    @property
+    def version(self) -> natnet.NatNetVersion | None:
+        return self._version
+
+    @property
+    def body_id(self) -> int | None:
+        return self._body_id
+
+    def bodies(self) -> dict[str, int]:
+        """Rigid bodies the server defines: name -> id."""
+        with self._cond:
+            return self._models.body_ids_by_name() if self._models else {}
+
+    @property
+    def models(self) -> natnet.ModelDefinitions | None:
+        return self._models
+
+
+def _open_multicast(cfg: NatNetConfig) -> socket.socket:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        s.bind(("", cfg.data_port))  # not (local_ip, port): Linux would deliver nothing
+        s.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP,
+                     socket.inet_aton(cfg.multicast_group) + socket.inet_aton(cfg.local_ip))
+    except OSError:
+        s.close()
+        raise
+    return s

@@ -1,0 +1,161 @@
+"""What a MoCap device hands to the ground station: pose samples, stream health, errors.
+
+A :class:`PoseSample` is the newest information about one rigid body, already in the ground
+station's world frame (z up, ``q_wb`` body -> world, ``(w, x, y, z)``). Its ``t_ns`` is the
+*capture* time on the ground-station clock (``time.monotonic_ns`` unless a clock is injected):
+receive time minus the latency the server reports (NatNet >= 3.0), minus a configured constant
+network delay. When the body is not tracked in the newest frame (tracking-valid flag cleared,
+body missing from the frame) the sample says so (``valid`` False, position and quaternion NaN):
+a stale pose is never handed out as current.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import threading
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+from drivers.mocap.frames import Quat, Vec3
+
+NAN3: Vec3 = (math.nan, math.nan, math.nan)
+NAN4: Quat = (math.nan, math.nan, math.nan, math.nan)
+
+#: A frame-number step larger than this (or backwards) is a discontinuity of the server's
+#: numbering (Motive restarted, timeline jumped), not a count of lost frames.
+MAX_FRAME_GAP = 1000
+
+
+class TrackingStatus(enum.Enum):
+    OK = "ok"
+    INVALID = "tracking_invalid"  # server says the body is not tracked (occluded markers)
+    MISSING = "missing"  # body absent from the frame
+
+
+@dataclass(frozen=True, slots=True)
+class PoseSample:
+    """One rigid body in one MoCap frame, world frame, ground-station clock."""
+
+    t_ns: int  # capture time, ground-station clock
+    rx_t_ns: int  # arrival time of the packet, ground-station clock
+    frame_number: int
+    body_id: int
+    body_name: str
+    status: TrackingStatus
+    pos_w_m: Vec3  # NaN unless valid
+    q_wb: Quat  # (w, x, y, z) body -> world; NaN unless valid
+    latency_s: float  # server-reported latency + configured network delay
+    mean_error_m: float  # mean marker error (NatNet); NaN if the server does not give it
+
+    @property
+    def valid(self) -> bool:
+        return self.status is TrackingStatus.OK
+
+
+@dataclass(frozen=True, slots=True)
+class MocapStats:
+    """Stream health of one MoCap device at ``now_ns``."""
+
+    frames_received: int
+    frames_dropped: int  # missing frame numbers (gaps up to MAX_FRAME_GAP)
+    frame_jumps: int  # frame-number discontinuities
+    invalid_samples: int  # frames where the configured body was invalid or missing
+    malformed_packets: int
+    foreign_packets: int  # from an address other than the configured server
+    rate_hz: float  # measured over the last ``window`` frames; 0 before two frames
+    age_s: float  # now - capture time of the newest valid sample; inf if none
+    latency_s: float  # of the newest frame; NaN if unknown
+
+
+@runtime_checkable
+class PoseSource(Protocol):
+    """The interface the ground-station loop reads MoCap through (single-slot mailbox)."""
+
+    def latest(self) -> PoseSample | None:
+        """The newest sample of the configured body, or None before the first frame."""
+        ...
+
+    def stats(self) -> MocapStats:
+        """Stream health now."""
+        ...
+
+
+class MocapError(Exception):
+    """A MoCap device cannot do what was asked; ``device`` names it (URI or address)."""
+
+    def __init__(self, device: str, message: str) -> None:
+        self.device = device
+        super().__init__(f"{device}: {message}")
+
+
+class MocapConnectError(MocapError):
+    """The server did not answer (wrong address, server not running, firewall)."""
+
+
+class UnknownBodyError(MocapError):
+    """The configured rigid body name is not defined on the server."""
+
+
+class StreamMonitor:
+    """Thread-safe counters and rate/age bookkeeping shared by the MoCap devices."""
+
+    def __init__(self, clock: Callable[[], int], window: int = 100) -> None:
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._rx: deque[int] = deque(maxlen=window)
+        self._last_frame: int | None = None
+        self.frames_received = 0
+        self.frames_dropped = 0
+        self.frame_jumps = 0
+        self.invalid_samples = 0
+        self.malformed_packets = 0
+        self.foreign_packets = 0
+        self._last_valid_t_ns: int | None = None
+        self._latency_s = math.nan
+
+    def count_malformed(self) -> None:
+        with self._lock:
+            self.malformed_packets += 1
+
+    def count_foreign(self) -> None:
+        with self._lock:
+            self.foreign_packets += 1
+
+    def on_frame(self, frame_number: int | None, rx_t_ns: int, latency_s: float) -> None:
+        """Record one frame (``frame_number`` None for streams without numbering)."""
+        with self._lock:
+            self.frames_received += 1
+            self._rx.append(rx_t_ns)
+            self._latency_s = latency_s
+            if frame_number is None:
+                return
+            last = self._last_frame
+            if last is not None:
+                gap = frame_number - last
+                if gap <= 0 or gap > MAX_FRAME_GAP:
+                    self.frame_jumps += 1
+                elif gap > 1:
+                    self.frames_dropped += gap - 1
+            self._last_frame = frame_number
+
+    def on_sample(self, sample: PoseSample) -> None:
+        with self._lock:
+            if sample.valid:
+                self._last_valid_t_ns = sample.t_ns
+            else:
+                self.invalid_samples += 1
+
+    def snapshot(self) -> MocapStats:
+        now = self._clock()
+        with self._lock:
+            rate = 0.0
+            if len(self._rx) >= 2 and self._rx[-1] > self._rx[0]:
+                rate = (len(self._rx) - 1) * 1e9 / (self._rx[-1] - self._rx[0])
+            age = math.inf if self._last_valid_t_ns is None \
+                else (now - self._last_valid_t_ns) * 1e-9
+            return MocapStats(self.frames_received, self.frames_dropped, self.frame_jumps,
+                              self.invalid_samples, self.malformed_packets,
+                              self.foreign_packets, rate, age, self._latency_s)
