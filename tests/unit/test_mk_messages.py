@@ -1,0 +1,195 @@
+"""MikroKopter message codecs: unit conversions, lengths, and encode -> decode round trips."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from drivers.mikrokopter import messages as m
+
+s16 = st.integers(-32768, 32767)
+u8 = st.integers(0, 255)
+
+
+def test_that_spin_rates_convert_to_the_reference_half_periods() -> None:
+    cases = {100.0: 5000, -100.0: -5000, 80.0: 6250, 60.0: 8333, 16.0: 31250, 102.0: 4901,
+             10.0: 32767, 0.0: 32767, -10.0: -32767, 15.2: 32767}
+    for hz, period in cases.items():
+        assert m.spin_hz_to_half_period(hz) == period, hz
+
+
+def test_that_the_slowest_speed_threshold_is_one_over_65535_us() -> None:
+    assert m.spin_hz_to_half_period(1e6 / 65535 * 0.9999) == 32767
+    assert m.spin_hz_to_half_period(1e6 / 65535) == 32767  # 32767.5 truncated
+    assert m.spin_hz_to_half_period(15.3) == 32679
+
+
+def test_that_a_non_finite_spin_rate_is_refused() -> None:
+    for bad in (math.nan, math.inf, -math.inf):
+        with pytest.raises(ValueError):
+            m.spin_hz_to_half_period(bad)
+
+
+@given(st.floats(min_value=16.0, max_value=200.0))
+def test_that_half_period_round_trip_loses_less_than_one_microsecond(hz: float) -> None:
+    p = m.spin_hz_to_half_period(hz)
+    back = m.half_period_to_spin_hz(p)
+    # truncation toward 0 of p = 5e5/hz: back >= hz, and the error is below one µs of period
+    assert back >= hz
+    assert m.half_period_to_spin_hz(p + 1) < hz
+
+
+def test_that_the_reference_imu_and_motor_messages_decode_to_si() -> None:
+    imu = m.decode_board_message(bytes.fromhex("49 07 0000 0000 2652 000a ffec 001e"))
+    assert imu == m.ImuMessage(7, (0.0, 0.0, 9.81), (0.01, -0.02, 0.03))
+    motor = m.decode_board_message(bytes.fromhex("4d 09 22 1388 0190 05dc"))
+    assert isinstance(motor, m.MotorMessage)
+    assert (motor.motor_id, motor.spinning, motor.emergency) == (2, True, False)
+    assert motor.speed_hz == pytest.approx(100.0)
+    assert motor.throttle_pct == pytest.approx(39.1, abs=0.05)
+    assert motor.current_a == pytest.approx(1.5)
+    battery = m.decode_board_message(bytes.fromhex("42 01 41a0"))
+    assert battery == m.BatteryMessage(1, pytest.approx(16.8))  # type: ignore[arg-type]
+
+
+def test_that_a_wrong_length_is_rejected_like_the_laas_host_does() -> None:
+    good = m.ImuMessage(1, (0.0, 0.0, 9.81), (0.0, 0.0, 0.0)).encode()
+    for bad in (good[:-1], good + b"\x00"):
+        with pytest.raises(m.MalformedMessage, match="bad b'I' message"):
+            m.decode_board_message(bad)
+    with pytest.raises(m.MalformedMessage):
+        m.decode_board_message(b"Z\x00")
+
+
+def test_that_a_motor_that_is_not_spinning_reads_zero_speed() -> None:
+    motor = m.MotorMessage(0, 1, True, False, False, 5000, 0, 0.0)
+    assert motor.speed_hz == 0.0
+
+
+def test_that_imu_axes_map_board_to_body_and_back() -> None:
+    axes = m.ImuAxes(axis=(1, 0, 2), sign=(1, -1, -1))
+    board = (1.0, 2.0, 3.0)
+    assert axes.to_body(board) == (2.0, -1.0, -3.0)
+    assert axes.to_board(axes.to_body(board)) == board
+    with pytest.raises(ValueError):
+        m.ImuAxes(axis=(0, 0, 2))
+
+
+vec_raw = st.tuples(s16, s16, s16)
+
+
+@st.composite
+def board_messages(draw: st.DrawFn) -> m.BoardMessage:
+    kind = draw(st.sampled_from("ICMBT?N"))
+    if kind == "I":
+        a, g = draw(vec_raw), draw(vec_raw)
+        return m.ImuMessage(draw(u8), (a[0] * 1e-3, a[1] * 1e-3, a[2] * 1e-3),
+                            (g[0] * 1e-3, g[1] * 1e-3, g[2] * 1e-3))
+    if kind == "C":
+        f = draw(vec_raw)
+        return m.MagMessage(draw(u8), (f[0] * 1e-8, f[1] * 1e-8, f[2] * 1e-8))
+    if kind == "M":
+        return m.MotorMessage(draw(u8), draw(st.integers(0, 15)), draw(st.booleans()),
+                              draw(st.booleans()), draw(st.booleans()), draw(s16), draw(s16),
+                              draw(st.integers(0, 65535)) * 1e-3)
+    if kind == "B":
+        return m.BatteryMessage(draw(u8), draw(st.integers(0, 65535)) * 1e-3)
+    if kind == "T":
+        return m.ClockRateMessage(draw(u8), draw(u8))
+    text = draw(st.text(alphabet=st.characters(min_codepoint=32, max_codepoint=126),
+                        max_size=40))
+    return m.IdentityMessage(text) if kind == "?" else m.TextMessage(b"N", text)
+
+
+@given(board_messages())
+def test_that_every_board_message_round_trips(msg: m.BoardMessage) -> None:
+    wire = msg.encode()
+    assert m.decode_board_message(wire) == msg
+    assert m.decode_board_message(wire).encode() == wire
+
+
+@st.composite
+def host_messages(draw: st.DrawFn) -> m.HostMessage:
+    kind = draw(st.sampled_from("?sgxwq~"))
+    n = draw(st.integers(1, 8))
+    if kind == "?":
+        return m.Identify()
+    if kind == "s":
+        return m.SetStreamPeriod(draw(st.sampled_from(list(m.Stream))),
+                                 draw(st.integers(0, 2**32 - 1)))
+    if kind in "gx":
+        motor = draw(st.none() | u8)
+        return m.StartMotors(motor) if kind == "g" else m.StopMotors(motor)
+    if kind == "w":
+        return m.SpinRates(tuple(draw(st.lists(s16, min_size=n, max_size=n))))
+    if kind == "q":
+        return m.Throttles(tuple(draw(st.lists(s16, min_size=n, max_size=n))))
+    return m.Beep(draw(st.integers(0, 65535)))
+
+
+@given(host_messages())
+def test_that_every_host_message_round_trips(msg: m.HostMessage) -> None:
+    assert m.decode_host_message(msg.encode()) == msg
+
+
+@given(st.lists(st.floats(min_value=-200.0, max_value=200.0), min_size=6, max_size=6))
+def test_that_spin_rates_from_hz_survive_the_wire(speeds: list[float]) -> None:
+    msg = m.SpinRates.from_hz(speeds)
+    back = m.decode_host_message(msg.encode())
+    assert back == msg
+
+
+@st.composite
+def stock_messages(draw: st.DrawFn) -> m.StockMessage:
+    kind = draw(st.sampled_from("vVdDcCbBtT"))
+    if kind == "v":
+        return m.VersionRequest()
+    if kind == "V":
+        b = draw(st.lists(u8, min_size=10, max_size=10))
+        return m.VersionInfo(b[0], b[1], b[2], b[3], b[4], (b[5], b[6]), b[7], b[8], b[9])
+    if kind == "d":
+        return m.DebugRequest(draw(u8) * 10)
+    if kind == "D":
+        return m.DebugOut((draw(u8), draw(u8)),
+                          tuple(draw(st.lists(s16, min_size=32, max_size=32))))
+    if kind == "c":
+        return m.Data3DRequest(draw(u8) * 10)
+    if kind == "C":
+        a = draw(vec_raw)
+        s8 = st.integers(-128, 127)
+        return m.Data3D((a[0] * 0.1, a[1] * 0.1, a[2] * 0.1), (draw(s8), draw(s8), draw(s8)),
+                        draw(st.integers(0, 65535)))
+    if kind == "b":
+        s8 = st.integers(-128, 127)
+        return m.ExternControl(draw(s8), draw(s8), draw(s8), draw(s8), draw(u8), draw(u8))
+    if kind == "B":
+        return m.ExternControlAck(draw(u8))
+    if kind == "t":
+        size = draw(st.sampled_from([4, 16]))
+        return m.EngineTest(tuple(draw(st.lists(u8, min_size=size, max_size=size))))
+    return m.EngineTestAck()
+
+
+@given(stock_messages())
+def test_that_every_stock_message_round_trips_through_the_framing(msg: m.StockMessage) -> None:
+    from drivers.mikrokopter import framing_stock as mk
+
+    wire = mk.encode_frame(mk.Address.FLIGHT_CTRL, msg.CMD, msg.payload())
+    (frame,) = mk.StockParser().feed(wire)
+    assert m.decode_stock_message(frame.cmd, frame.data) == msg
+
+
+@given(st.binary(max_size=70))
+def test_that_random_messages_decode_or_raise_only_malformed(data: bytes) -> None:
+    for decode in (m.decode_board_message, m.decode_host_message):
+        try:
+            decode(data)
+        except m.MalformedMessage:
+            pass
+    try:
+        m.decode_stock_message(data[:1], data[1:])
+    except m.MalformedMessage:
+        pass
