@@ -1,0 +1,815 @@
+"""The FAST-Hex tilt servo: one Dynamixel MX-28T (Protocol 1.0, multi-turn) behind a 20:1 worm.
+
+Wire protocol: Dynamixel Protocol 1.0 on a half-duplex TTL bus through a USB2Dynamixel/U2D2,
+spoken by the official ``dynamixel-sdk`` (``PortHandler`` + ``PacketHandler(1.0)``, the float:
+``"1.0"`` silently selects Protocol 2.0). Packets ``FF FF ID LEN INST params CHK`` with
+``CHK = ~(ID + LEN + INST + sum(params)) & 0xFF`` (:mod:`drivers.dynamixel.protocol1`).
+Registers: :mod:`drivers.dynamixel.control_table` (P1 addresses: Torque 24, Goal 30, Moving
+Speed 32, Present 36..46).
+
+URI: ``serial:///dev/ttyUSB1?baud=1000000&id=1``, ``pty:///path/of/a/pty?id=1`` or a bare path.
+``baud`` must be one the SDK can open (1 Mbps recommended: Baud Rate register 1); ``id`` 0..253.
+
+Per service cycle (``rate_hz``, 50 Hz by default): one WRITE of Goal Position (only when the
+rate-limited goal moved) and one READ of the 11-byte block 36..46 (position, speed, load,
+voltage, temperature, Registered, Moving); GroupBulkRead is broken for P1 in SDK 4.1.0.
+
+Why a separate process: the SDK waits for every reply by busy-polling ``read()`` for up to its
+~34 ms timeout, holding the GIL. The servo is therefore served by its own process (or, for
+comparison, a thread) and the control loop only touches a shared-memory mailbox:
+:meth:`TiltServo.set_tilt` stores a goal, :meth:`TiltServo.latest` copies the newest
+:class:`ServoState` (seqlock; never waits).
+
+SDK traps handled here: a late reply taken as the answer to the next request (after any failed
+transaction the worker waits ``resync_quiet_s`` and flushes the input; READ replies of the wrong
+length are rejected), a port left ``is_using`` after an exception (the port is dropped and a new
+``PortHandler`` opened), SRL < 2 (set to 2 with a write that expects no reply).
+
+Geometry: ``tilt_rad = gear_ratio * servo_angle_rad`` (k = 0.05); Present Position ``p`` steps
+(0.088 deg) maps to ``tilt = (p - zero_offset_steps) * RAD_PER_STEP * k``. The multi-turn count
+does not survive a power cycle: :meth:`TiltServo.home` sets the zero offset at a known tilt.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import multiprocessing as mp
+import signal
+import threading
+import time
+from dataclasses import dataclass, replace
+from enum import IntEnum
+from typing import Any, Literal
+from urllib.parse import parse_qs, urlparse
+
+from config.schema import ConfigValueError, spec
+from drivers.dynamixel.control_table import (
+    MAX_ID,
+    MODEL_MX28_P1,
+    MODEL_MX28_P2,
+    MULTI_TURN_LIMIT,
+    MULTI_TURN_MAX_STEPS,
+    MULTI_TURN_MIN_STEPS,
+    RAD_PER_STEP,
+    STATE_BLOCK_LENGTH,
+    ErrorBit,
+    Mode,
+    Reg,
+    mode_from_limits,
+    moving_speed_for_rate,
+    signed_magnitude_11,
+    speed_rad_s,
+    to_signed16,
+    to_unsigned16,
+)
+from drivers.errors import DriverError, TransportUriError
+
+log = logging.getLogger(__name__)
+
+SDK_BAUDS = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600,
+             1000000, 1152000, 2000000, 2500000, 3000000, 3500000, 4000000)
+"""The only rates ``PortHandler.setBaudRate`` accepts (dynamixel-sdk 4.1.0)."""
+
+
+# ---------------------------------------------------------------------------- errors
+class ServoError(DriverError):
+    """A tilt-servo problem; ``device`` is the URI."""
+
+
+class ServoIdentityError(ServoError):
+    """The device answering is not an MX-28 with Protocol 1.0 firmware (or too old)."""
+
+
+class ServoCommError(ServoError):
+    """A transaction failed (no reply, corrupt reply, port gone)."""
+
+
+# ---------------------------------------------------------------------------- config
+@dataclass(frozen=True)
+class TiltServoConfig:
+    """How the tilt servo is reached, geared and served. Loadable with ``config.schema``."""
+
+    uri: str = spec("serial:///dev/ttyUSB1?baud=1000000&id=1",
+                    doc="serial:// or pty:// URI with baud and id, or a bare device path")
+    gear_ratio: float = spec(0.05, gt=0.0, le=1.0, doc="tilt angle / servo angle (worm 20:1)")
+    zero_offset_steps: int = spec(0, ge=MULTI_TURN_MIN_STEPS, le=MULTI_TURN_MAX_STEPS,
+                                  doc="Present Position (steps) at tilt 0")
+    max_tilt_deg: float = spec(35.0, gt=0.0, le=90.0, doc="goal tilts are clamped to [0, max]")
+    max_tilt_rate_deg_s: float = spec(10.0, gt=0.0, le=60.0, doc="goal tilt rate limit")
+    rate_hz: float = spec(50.0, ge=5.0, le=200.0, doc="service rate of the servo process")
+    stale_after_s: float = spec(0.1, gt=0.0, le=5.0,
+                                doc="a measurement older than this is reported STALE")
+    resync_quiet_s: float = spec(0.1, ge=0.0, le=2.0,
+                                 doc="wait after a failed transaction before flushing the input")
+    reconnect_period_s: float = spec(0.2, gt=0.0, le=10.0, doc="retry period when unplugged")
+    sdk_latency_timer_ms: float = spec(16.0, ge=1.0, le=1000.0,
+                                       doc="dynamixel_sdk LATENCY_TIMER: timeout = 2x this + 2 ms")
+    min_firmware: int = spec(0, ge=0, le=255, doc="refuse older firmware")
+    assume_homed: bool = spec(True, doc="trust zero_offset_steps at start (else home() first)")
+
+    def __post_init__(self) -> None:
+        parse_servo_uri(self.uri)  # raises TransportUriError, a ValueError
+        top = self.zero_offset_steps + math.radians(self.max_tilt_deg) / self.gear_ratio \
+            / RAD_PER_STEP
+        if not MULTI_TURN_MIN_STEPS <= top <= MULTI_TURN_MAX_STEPS:
+            raise ConfigValueError("zero_offset_steps",
+                                   f"max tilt maps to {top:.0f} steps, outside +-28672")
+
+    @property
+    def max_tilt_rad(self) -> float:
+        return math.radians(self.max_tilt_deg)
+
+    @property
+    def max_tilt_rate_rad_s(self) -> float:
+        return math.radians(self.max_tilt_rate_deg_s)
+
+
+@dataclass(frozen=True, slots=True)
+class ServoUri:
+    port: str
+    baud: int
+    dxl_id: int
+
+
+def parse_servo_uri(uri: str) -> ServoUri:
+    """``serial:///dev/ttyUSB1?baud=1000000&id=1`` (or ``pty://``, or a bare path)."""
+    if "://" not in uri:
+        parsed_path, query = uri, ""
+        if "?" in uri:
+            parsed_path, query = uri.split("?", 1)
+    else:
+        parsed = urlparse(uri)
+        if parsed.scheme not in ("serial", "pty"):
+            raise TransportUriError(uri, f"unknown scheme {parsed.scheme!r} (serial, pty)")
+        parsed_path, query = parsed.netloc + parsed.path, parsed.query
+    if not parsed_path:
+        raise TransportUriError(uri, "no device path")
+    options = parse_qs(query, keep_blank_values=True)
+    unknown = set(options) - {"baud", "id"}
+    if unknown:
+        raise TransportUriError(uri, f"unknown option(s) {sorted(unknown)} (baud, id)")
+    try:
+        baud = int(options.get("baud", ["1000000"])[-1])
+        dxl_id = int(options.get("id", ["1"])[-1])
+    except ValueError as exc:
+        raise TransportUriError(uri, f"baud and id must be integers ({exc})") from None
+    if baud not in SDK_BAUDS:
+        raise TransportUriError(uri, f"baud {baud} cannot be opened by dynamixel-sdk")
+    if not 0 <= dxl_id <= MAX_ID:
+        raise TransportUriError(uri, f"id {dxl_id} outside 0..{MAX_ID}")
+    return ServoUri(parsed_path, baud, dxl_id)
+
+
+# ---------------------------------------------------------------------------- geometry
+def tilt_to_steps(tilt_rad: float, gear_ratio: float, zero_offset_steps: int) -> int:
+    """Goal Position (steps) for a tilt angle: through the worm, then 0.088 deg steps."""
+    return round(tilt_rad / gear_ratio / RAD_PER_STEP) + zero_offset_steps
+
+
+def steps_to_tilt(steps: int, gear_ratio: float, zero_offset_steps: int) -> float:
+    """Tilt angle (rad) of a Present Position (steps)."""
+    return (steps - zero_offset_steps) * RAD_PER_STEP * gear_ratio
+
+
+def rate_limited_goal(previous_rad: float, requested_rad: float, max_tilt_rad: float,
+                      max_rate_rad_s: float, dt_s: float) -> float:
+    """Next goal tilt: the request clamped to [0, max_tilt], approached at <= max_rate."""
+    target = min(max(requested_rad, 0.0), max_tilt_rad)
+    step = max_rate_rad_s * max(dt_s, 0.0)
+    return previous_rad + max(-step, min(step, target - previous_rad))
+
+
+# ---------------------------------------------------------------------------- state
+class ServoHealth(IntEnum):
+    """What the loop needs to know about the servo, worst last."""
+
+    OK = 0
+    NOT_STARTED = 1
+    HOMING_REQUIRED = 2
+    SERVO_ERROR = 3
+    """The servo answers but its status error byte is set: see ``ServoState.errors``."""
+    NO_REPLY = 4
+    CORRUPT_REPLY = 5
+    DISCONNECTED = 6
+    WRONG_MODEL = 7
+    MISCONFIGURED = 8
+    STALE = 9
+    """The mailbox has not been refreshed for ``stale_after_s`` (whatever the worker said)."""
+    STOPPED = 10
+
+
+@dataclass(frozen=True, slots=True)
+class ServoState:
+    """The newest measurement of the tilt servo. NaN until the first good reading.
+
+    ``t_s`` is the ``time.monotonic()`` of the last good READ (system-wide clock, comparable
+    across processes); ``age_s`` is how old it was when :meth:`TiltServo.latest` was called.
+    The measured values are kept through faults: ``health`` says whether they are fresh.
+    """
+
+    t_s: float
+    seq: int
+    tilt_rad: float
+    tilt_rate_rad_s: float
+    servo_position_steps: int
+    load_fraction: float
+    voltage_v: float
+    temperature_c: float
+    moving: bool
+    health: ServoHealth
+    errors: ErrorBit
+    goal_tilt_rad: float
+    age_s: float
+    homed: bool
+    timeouts: int
+    corrupt_replies: int
+    reconnects: int
+
+    @property
+    def ok(self) -> bool:
+        return self.health is ServoHealth.OK
+
+
+@dataclass(frozen=True, slots=True)
+class ServoIdentity:
+    """What :func:`probe_servo` found."""
+
+    device: str
+    dxl_id: int
+    model_number: int
+    firmware_version: int
+    mode: Mode
+    present_position_steps: int
+    status_return_level: int
+    return_delay_us: int
+
+    @property
+    def is_mx28_p1(self) -> bool:
+        return self.model_number == MODEL_MX28_P1
+
+
+class _S(IntEnum):
+    """Slots of the shared state array (doubles)."""
+
+    SEQLOCK = 0
+    T_S = 1
+    SEQ = 2
+    TILT = 3
+    RATE = 4
+    POS = 5
+    LOAD = 6
+    VOLT = 7
+    TEMP = 8
+    MOVING = 9
+    HEALTH = 10
+    ERRORS = 11
+    GOAL = 12
+    HOMED = 13
+    TIMEOUTS = 14
+    CORRUPT = 15
+    RECONNECTS = 16
+    ZERO = 17
+    HEARTBEAT_T = 18
+    N = 19
+
+
+class _Mailbox:
+    """Single-writer shared-memory mailbox: a seqlock-protected state array and a goal slot."""
+
+    def __init__(self, ctx: Any) -> None:
+        self.state = ctx.RawArray("d", int(_S.N))
+        self.goal = ctx.RawArray("d", 1)
+        nan = math.nan
+        for i in range(int(_S.N)):
+            self.state[i] = nan
+        for slot in (_S.SEQLOCK, _S.SEQ, _S.ERRORS, _S.TIMEOUTS, _S.CORRUPT, _S.RECONNECTS):
+            self.state[slot] = 0.0
+        self.state[_S.HEALTH] = float(ServoHealth.NOT_STARTED)
+        self.goal[0] = nan
+
+    def publish(self, values: list[float]) -> None:
+        state = self.state
+        state[_S.SEQLOCK] += 1.0  # odd: being written
+        state[1:] = values[1:]
+        state[_S.SEQLOCK] += 1.0
+
+    def snapshot(self, previous: list[float] | None) -> list[float] | None:
+        state = self.state
+        for _ in range(4):
+            before = state[_S.SEQLOCK]
+            if int(before) % 2 == 0:
+                values = state[:]
+                if state[_S.SEQLOCK] == before:
+                    return values
+        return previous  # a writer was mid-update every time: never wait for it
+
+
+# ---------------------------------------------------------------------------- the SDK side
+def _sdk() -> Any:
+    import dynamixel_sdk
+    return dynamixel_sdk
+
+
+class _Link:
+    """The SDK wrapped: result codes become exceptions, the port is dropped after one."""
+
+    def __init__(self, uri: str, latency_timer_ms: float) -> None:
+        self.uri = uri
+        self.target = parse_servo_uri(uri)
+        self.sdk = _sdk()
+        self.sdk.port_handler.LATENCY_TIMER = latency_timer_ms
+        self.ph = self.sdk.PacketHandler(1.0)  # the float: "1.0" would be Protocol 2.0
+        self.port: Any = None
+
+    @property
+    def is_open(self) -> bool:
+        return self.port is not None
+
+    def open(self) -> None:
+        port = self.sdk.PortHandler(self.target.port)
+        try:
+            ok = port.openPort() and port.setBaudRate(self.target.baud)
+        except Exception as exc:  # serial.SerialException, OSError, termios.error
+            raise ServoCommError(self.uri, f"cannot open: {exc}") from exc
+        if not ok:
+            with contextlib.suppress(Exception):
+                port.closePort()
+            raise ServoCommError(self.uri, "cannot open the port")
+        self.port = port
+
+    def drop(self) -> None:
+        """Close and forget the port (a fresh PortHandler clears the stuck is_using flag)."""
+        if self.port is not None:
+            with contextlib.suppress(Exception):
+                self.port.is_using = False
+                self.port.closePort()
+        self.port = None
+
+    def flush(self) -> None:
+        if self.port is not None:
+            self.port.is_using = False
+            self.port.clearPort()
+
+    def _check(self, what: str, result: int) -> None:
+        if result != self.sdk.COMM_SUCCESS:
+            text = self.ph.getTxRxResult(result)
+            raise ServoCommError(self.uri, f"{what}: {text}") from None
+
+    def call(self, what: str, fn: Any, *args: Any) -> Any:
+        if self.port is None:
+            raise ServoCommError(self.uri, f"{what}: port not open")
+        try:
+            return fn(self.port, self.target.dxl_id, *args)
+        except ServoCommError:
+            raise
+        except Exception as exc:  # the SDK lets termios/serial/Index errors escape
+            self.drop()
+            raise _PortLostError(self.uri, f"{what}: {type(exc).__name__}: {exc}") from exc
+
+    def ping(self) -> tuple[int, ErrorBit]:
+        model, result, error = self.call("ping", self.ph.ping)
+        self._check("ping", result)
+        return model, ErrorBit(error & 0x7F)
+
+    def read(self, reg: Reg, length: int) -> tuple[list[int], ErrorBit]:
+        data, result, error = self.call(f"read {reg.name}", self.ph.readTxRx, int(reg), length)
+        self._check(f"read {reg.name}", result)
+        if len(data) != length:
+            # A status packet meant for another request (a late reply): not ours.
+            raise _CorruptReplyError(
+                self.uri, f"read {reg.name}: {len(data)} bytes, expected {length}")
+        return list(data), ErrorBit(error & 0x7F)
+
+    def write(self, reg: Reg, size: int, value: int) -> ErrorBit:
+        fn = {1: self.ph.write1ByteTxRx, 2: self.ph.write2ByteTxRx, 4: self.ph.write4ByteTxRx}
+        result, error = self.call(f"write {reg.name}", fn[size], int(reg), value)
+        self._check(f"write {reg.name}", result)
+        return ErrorBit(error & 0x7F)
+
+    def write_no_reply(self, reg: Reg, value: int) -> None:
+        result = self.call(f"write {reg.name}", self.ph.write1ByteTxOnly, int(reg), value)
+        self._check(f"write {reg.name}", result)
+
+    def result_code(self, exc: ServoCommError) -> ServoHealth:
+        if isinstance(exc, _PortLostError):
+            return ServoHealth.DISCONNECTED
+        if isinstance(exc, _CorruptReplyError) or "corrupt" in exc.message.lower():
+            return ServoHealth.CORRUPT_REPLY
+        return ServoHealth.NO_REPLY
+
+
+class _PortLostError(ServoCommError):
+    """The port raised (unplugged, EIO): it has been dropped."""
+
+
+class _CorruptReplyError(ServoCommError):
+    """A reply that cannot be the answer to the request."""
+
+
+def _u16(data: list[int], i: int) -> int:
+    return data[i] | (data[i + 1] << 8)
+
+
+def probe_servo(uri: str, latency_timer_ms: float = 16.0) -> ServoIdentity:
+    """Identify the servo at ``uri`` from the calling process (preflight / CLI; it busy-waits,
+    so not from the control loop). Raises :class:`ServoCommError` if nothing answers."""
+    link = _Link(uri, latency_timer_ms)
+    link.open()
+    try:
+        return _identify(link)
+    finally:
+        link.drop()
+
+
+def _identify(link: _Link) -> ServoIdentity:
+    model, _ = link.ping()
+    firmware = link.read(Reg.FIRMWARE_VERSION, 1)[0][0]
+    eeprom, _ = link.read(Reg.RETURN_DELAY_TIME, 5)
+    srl = link.read(Reg.STATUS_RETURN_LEVEL, 1)[0][0]
+    present = to_signed16(_u16(link.read(Reg.PRESENT_POSITION, 2)[0], 0))
+    return ServoIdentity(
+        device=link.uri, dxl_id=link.target.dxl_id, model_number=model,
+        firmware_version=firmware, mode=mode_from_limits(_u16(eeprom, 1), _u16(eeprom, 3)),
+        present_position_steps=present, status_return_level=srl,
+        return_delay_us=2 * eeprom[0])
+
+
+class _Worker:
+    """The servo service loop. Runs in the servo process (or a thread) and owns the port."""
+
+    def __init__(self, cfg: TiltServoConfig, mailbox: _Mailbox, conn: Any, stop: Any) -> None:
+        self.cfg = cfg
+        self.mailbox = mailbox
+        self.conn = conn
+        self.stop = stop
+        self.link = _Link(cfg.uri, cfg.sdk_latency_timer_ms)
+        self.zero = cfg.zero_offset_steps
+        self.homed = cfg.assume_homed
+        self.values = [math.nan] * int(_S.N)
+        self.values[_S.SEQ] = 0.0
+        self.values[_S.HEALTH] = float(ServoHealth.NOT_STARTED)
+        self.values[_S.ERRORS] = 0.0
+        for slot in (_S.TIMEOUTS, _S.CORRUPT, _S.RECONNECTS):
+            self.values[slot] = 0.0
+        self.configured = False
+        self.goal_rad = math.nan      # last rate-limited goal written
+        self.goal_t = 0.0
+        self.last_present: int | None = None
+        self.fatal: ServoHealth | None = None
+        self.next_reconnect = 0.0
+
+    # -- publishing
+    def publish(self, health: ServoHealth, errors: ErrorBit | None = None) -> None:
+        v = self.values
+        v[_S.HEALTH] = float(health)
+        if errors is not None:
+            v[_S.ERRORS] = float(int(errors))
+        v[_S.GOAL] = self.goal_rad
+        v[_S.HOMED] = 1.0 if self.homed else 0.0
+        v[_S.ZERO] = float(self.zero)
+        v[_S.HEARTBEAT_T] = time.monotonic()
+        self.mailbox.publish(v)
+
+    # -- connection and configuration
+    def connect(self) -> None:
+        if not self.link.is_open:
+            self.link.open()
+            self.values[_S.RECONNECTS] += 1
+        self.configure()
+
+    def configure(self) -> None:
+        link, cfg = self.link, self.cfg
+        model, _ = link.ping()
+        if model != MODEL_MX28_P1:
+            why = ("an MX-28 running the Protocol 2.0 firmware" if model == MODEL_MX28_P2
+                   else f"model {model}")
+            raise ServoIdentityError(link.uri, f"expected an MX-28 (P1, model 29), found {why}")
+        firmware = link.read(Reg.FIRMWARE_VERSION, 1)[0][0]
+        if firmware < cfg.min_firmware:
+            raise ServoIdentityError(link.uri, f"firmware {firmware} < {cfg.min_firmware}")
+        try:
+            srl = link.read(Reg.STATUS_RETURN_LEVEL, 1)[0][0]
+        except ServoCommError:
+            srl = 0  # SRL 0 does not answer READ
+        if srl != 2:
+            # With SRL < 2 every write*TxRx times out although applied: write without reply.
+            link.write_no_reply(Reg.STATUS_RETURN_LEVEL, 2)
+        if link.read(Reg.RETURN_DELAY_TIME, 1)[0][0] != 0:
+            link.write(Reg.RETURN_DELAY_TIME, 1, 0)
+        limits, _ = link.read(Reg.CW_ANGLE_LIMIT, 4)
+        if mode_from_limits(_u16(limits, 0), _u16(limits, 2)) is not Mode.MULTI_TURN:
+            link.write(Reg.CW_ANGLE_LIMIT, 4, MULTI_TURN_LIMIT | (MULTI_TURN_LIMIT << 16))
+            limits, _ = link.read(Reg.CW_ANGLE_LIMIT, 4)
+            if mode_from_limits(_u16(limits, 0), _u16(limits, 2)) is not Mode.MULTI_TURN:
+                raise _MisconfiguredError(link.uri, "multi-turn mode refused (EEPROM locked?)")
+        speed = moving_speed_for_rate(cfg.max_tilt_rate_rad_s / cfg.gear_ratio)
+        link.write(Reg.MOVING_SPEED, 2, speed)
+        present = to_signed16(_u16(link.read(Reg.PRESENT_POSITION, 2)[0], 0))
+        if self.last_present is not None and abs(present - self.last_present) > 2048:
+            # The turn count moved under us: the servo was power-cycled; the zero is lost.
+            self.homed = False
+        # Hold where it is: goal = present before the torque comes on.
+        link.write(Reg.GOAL_POSITION, 2, to_unsigned16(present))
+        link.write(Reg.TORQUE_ENABLE, 1, 1)
+        self.goal_rad = steps_to_tilt(present, cfg.gear_ratio, self.zero)
+        self.goal_t = time.monotonic()
+        self.configured = True
+
+    # -- one cycle
+    def cycle(self) -> tuple[ServoHealth, ErrorBit]:
+        cfg, link = self.cfg, self.link
+        errors = ErrorBit.NONE
+        now = time.monotonic()
+        requested = self.mailbox.goal[0]
+        if self.homed and math.isfinite(requested) and math.isfinite(self.goal_rad):
+            goal = rate_limited_goal(self.goal_rad, requested, cfg.max_tilt_rad,
+                                     cfg.max_tilt_rate_rad_s, min(now - self.goal_t, 0.1))
+            steps = tilt_to_steps(goal, cfg.gear_ratio, self.zero)
+            if steps != tilt_to_steps(self.goal_rad, cfg.gear_ratio, self.zero):
+                errors |= link.write(Reg.GOAL_POSITION, 2, to_unsigned16(steps))
+            self.goal_rad = goal
+        self.goal_t = now
+        data, err = link.read(Reg.PRESENT_POSITION, STATE_BLOCK_LENGTH)
+        errors |= err
+        t_s = time.monotonic()
+        present = to_signed16(_u16(data, 0))
+        self.last_present = present
+        v = self.values
+        v[_S.T_S] = t_s
+        v[_S.SEQ] += 1
+        v[_S.POS] = float(present)
+        v[_S.TILT] = steps_to_tilt(present, cfg.gear_ratio, self.zero)
+        v[_S.RATE] = cfg.gear_ratio * speed_rad_s(signed_magnitude_11(_u16(data, 2)))
+        v[_S.LOAD] = 0.001 * signed_magnitude_11(_u16(data, 4))
+        v[_S.VOLT] = 0.1 * data[6]
+        v[_S.TEMP] = float(data[7])
+        v[_S.MOVING] = float(data[10])
+        if errors:
+            return ServoHealth.SERVO_ERROR, errors
+        return (ServoHealth.OK if self.homed else ServoHealth.HOMING_REQUIRED), errors
+
+    # -- commands from the owner (rare; the owner waits for the answer)
+    def serve_commands(self) -> None:
+        while self.conn.poll(0):
+            request = self.conn.recv()
+            try:
+                self.conn.send(("ok", self.command(*request)))
+            except (ServoError, ValueError) as exc:
+                self.conn.send(("error", exc))
+
+    def command(self, name: str, *args: Any) -> Any:
+        if name == "identify":
+            return _identify(self.link)
+        if name == "home":
+            at_tilt = float(args[0])
+            present = to_signed16(_u16(self.link.read(Reg.PRESENT_POSITION, 2)[0], 0))
+            self.zero = present - tilt_to_steps(at_tilt, self.cfg.gear_ratio, 0)
+            self.homed = True
+            self.goal_rad = at_tilt
+            self.goal_t = time.monotonic()
+            return self.zero
+        if name == "torque":
+            return self.link.write(Reg.TORQUE_ENABLE, 1, int(bool(args[0])))
+        raise ValueError(f"unknown servo command {name!r}")
+
+    def fail(self, exc: ServoCommError) -> None:
+        health = self.link.result_code(exc)
+        slot = _S.CORRUPT if health is ServoHealth.CORRUPT_REPLY else _S.TIMEOUTS
+        if health is not ServoHealth.DISCONNECTED:
+            self.values[slot] += 1
+        self.publish(health)
+        log.debug("%s", exc)
+        if health is ServoHealth.DISCONNECTED:
+            self.configured = False
+            self.next_reconnect = time.monotonic() + self.cfg.reconnect_period_s
+            return
+        # A late reply could still arrive and answer the next request: wait, then flush.
+        if self.stop.wait(self.cfg.resync_quiet_s):
+            return
+        try:
+            self.link.flush()
+        except Exception:  # the port died while we waited
+            self.link.drop()
+            self.configured = False
+
+    def run(self) -> None:
+        period = 1.0 / self.cfg.rate_hz
+        deadline = time.monotonic()
+        while not self.stop.is_set():
+            if self.conn is not None:
+                try:
+                    if self.configured:
+                        self.serve_commands()
+                except ServoCommError as exc:
+                    self.fail(exc)
+                    continue
+            if not self.configured:
+                if time.monotonic() < self.next_reconnect:
+                    self.stop.wait(min(period, self.next_reconnect - time.monotonic()))
+                    continue
+                try:
+                    self.connect()
+                except ServoIdentityError as exc:
+                    log.error("%s", exc)
+                    self.publish(ServoHealth.WRONG_MODEL)
+                    self.link.drop()
+                    self.next_reconnect = time.monotonic() + self.cfg.reconnect_period_s
+                    continue
+                except _MisconfiguredError as exc:
+                    log.error("%s", exc)
+                    self.publish(ServoHealth.MISCONFIGURED)
+                    self.next_reconnect = time.monotonic() + self.cfg.reconnect_period_s
+                    continue
+                except ServoCommError as exc:
+                    if isinstance(exc, _PortLostError) or not self.link.is_open:
+                        self.publish(ServoHealth.DISCONNECTED)
+                        self.next_reconnect = time.monotonic() + self.cfg.reconnect_period_s
+                    else:
+                        self.fail(exc)
+                    continue
+            try:
+                health, errors = self.cycle()
+            except ServoCommError as exc:
+                self.fail(exc)
+                deadline = time.monotonic()
+                continue
+            self.publish(health, errors)
+            deadline += period
+            wait = deadline - time.monotonic()
+            if wait < -period:
+                deadline = time.monotonic()  # overran: do not try to catch up
+            elif wait > 0:
+                self.stop.wait(wait)
+        self.shutdown()
+
+    def shutdown(self) -> None:
+        """Torque off, then let go of the port."""
+        if self.link.is_open:
+            try:
+                self.link.write(Reg.TORQUE_ENABLE, 1, 0)
+            except ServoCommError as exc:
+                log.warning("torque off failed: %s", exc)
+        self.link.drop()
+        self.publish(ServoHealth.STOPPED)
+
+
+class _MisconfiguredError(ServoError):
+    pass
+
+
+def _run_worker(cfg: TiltServoConfig, mailbox: _Mailbox, conn: Any, stop: Any,
+                in_process: bool) -> None:
+    if in_process:
+        # Ctrl-C belongs to the flight state machine (land first): the servo process keeps
+        # holding the tilt until it is told to stop.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        logging.basicConfig(level=logging.WARNING)
+    _Worker(cfg, mailbox, conn, stop).run()
+
+
+# ---------------------------------------------------------------------------- the loop side
+class TiltServo:
+    """The tilt servo as the 500 Hz loop sees it: a mailbox, never a wait.
+
+    ``set_tilt`` (the ``TiltCommandSink``) stores the goal; ``latest`` returns the newest
+    :class:`ServoState`. The SDK runs in a child process (``isolation="process"``, the default)
+    so its busy-waiting never takes the loop's GIL; ``"thread"`` exists for comparison.
+    The process is started with ``spawn`` (safe in a process that already runs threads), so a
+    script that starts it needs the usual ``if __name__ == "__main__":`` guard.
+    """
+
+    def __init__(self, config: TiltServoConfig,
+                 isolation: Literal["process", "thread"] = "process") -> None:
+        self.config = config
+        self.isolation = isolation
+        self._ctx = mp.get_context("spawn")
+        self._mailbox = _Mailbox(self._ctx)
+        self._stop: Any = None
+        self._runner: mp.process.BaseProcess | threading.Thread | None = None
+        self._conn: Any = None
+        self._request_lock = threading.Lock()
+        self._last: list[float] | None = None
+        self._stopped = False
+
+    # -- lifecycle
+    def start(self) -> TiltServo:
+        """Start serving (returns at once; ``latest().health`` says when it is connected)."""
+        if self._runner is not None:
+            return self
+        ours, theirs = self._ctx.Pipe()
+        self._conn = ours
+        if self.isolation == "process":
+            self._stop = self._ctx.Event()
+            self._runner = self._ctx.Process(
+                target=_run_worker, name="tilt-servo", daemon=True,
+                args=(self.config, self._mailbox, theirs, self._stop, True))
+        else:
+            self._stop = threading.Event()
+            self._runner = threading.Thread(
+                target=_run_worker, name="tilt-servo", daemon=True,
+                args=(self.config, self._mailbox, theirs, self._stop, False))
+        self._runner.start()
+        return self
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """Torque off and stop the servo process (the tilt holds: the worm is self-locking)."""
+        if self._runner is None:
+            return
+        self._stop.set()
+        self._runner.join(timeout_s)
+        if isinstance(self._runner, mp.process.BaseProcess) and self._runner.is_alive():
+            self._runner.terminate()
+            self._runner.join(1.0)
+        self._runner = None
+        self._stopped = True
+
+    close = stop
+
+    def __enter__(self) -> TiltServo:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # -- the loop-facing API
+    def set_tilt(self, tilt_rad: float) -> None:
+        """Goal tilt angle alpha (rad). Clamped to [0, max tilt] and rate-limited by the servo
+        process. Stores one float: never blocks."""
+        if not math.isfinite(tilt_rad):
+            raise ValueError(f"{self.config.uri}: tilt goal must be finite, got {tilt_rad}")
+        self._mailbox.goal[0] = min(max(tilt_rad, 0.0), self.config.max_tilt_rad)
+
+    def latest(self, now_s: float | None = None) -> ServoState:
+        """The newest state; ``now_s`` (monotonic) defaults to ``time.monotonic()``."""
+        values = self._mailbox.snapshot(self._last)
+        if values is None:
+            values = list(self._mailbox.state)
+        self._last = values
+        now = time.monotonic() if now_s is None else now_s
+        t_s = values[_S.T_S]
+        age = now - t_s if math.isfinite(t_s) else math.inf
+        health = ServoHealth(int(values[_S.HEALTH]))
+        heartbeat = values[_S.HEARTBEAT_T]
+        silent = not math.isfinite(heartbeat) or now - heartbeat > self.config.stale_after_s
+        if self._stopped:
+            health = ServoHealth.STOPPED
+        elif health is ServoHealth.OK and age > self.config.stale_after_s:
+            health = ServoHealth.STALE
+        elif health is not ServoHealth.NOT_STARTED and silent:
+            health = ServoHealth.STALE  # the worker itself is stuck or gone
+        pos = values[_S.POS]
+        return ServoState(
+            t_s=t_s, seq=int(values[_S.SEQ]), tilt_rad=values[_S.TILT],
+            tilt_rate_rad_s=values[_S.RATE],
+            servo_position_steps=int(pos) if math.isfinite(pos) else 0,
+            load_fraction=values[_S.LOAD], voltage_v=values[_S.VOLT],
+            temperature_c=values[_S.TEMP], moving=values[_S.MOVING] == 1.0,
+            health=health, errors=ErrorBit(int(values[_S.ERRORS])),
+            goal_tilt_rad=values[_S.GOAL], age_s=age, homed=values[_S.HOMED] == 1.0,
+            timeouts=int(values[_S.TIMEOUTS]), corrupt_replies=int(values[_S.CORRUPT]),
+            reconnects=int(values[_S.RECONNECTS]))
+
+    # -- rare requests (preflight, bench): these wait for the servo process
+    def _request(self, timeout_s: float, *request: Any) -> Any:
+        if self._runner is None:
+            raise ServoError(self.config.uri, "servo not started")
+        with self._request_lock:
+            self._conn.send(request)
+            if not self._conn.poll(timeout_s):
+                raise ServoCommError(self.config.uri, f"{request[0]}: no answer in {timeout_s} s")
+            status, value = self._conn.recv()
+        if status == "error":
+            raise value
+        return value
+
+    def probe(self, timeout_s: float = 2.0) -> ServoIdentity:
+        """Identify the servo (model, firmware, mode): through the servo process if started."""
+        if self._runner is None:
+            return probe_servo(self.config.uri, self.config.sdk_latency_timer_ms)
+        identity: ServoIdentity = self._request(timeout_s, "identify")
+        return identity
+
+    def home(self, at_tilt_rad: float = 0.0, timeout_s: float = 2.0) -> int:
+        """Zero calibration: the mechanism is at ``at_tilt_rad`` now (jig or end stop); returns
+        the new zero offset (Present Position at tilt 0), to be saved in the config."""
+        return int(self._request(timeout_s, "home", at_tilt_rad))
+
+    def torque(self, enabled: bool, timeout_s: float = 2.0) -> ErrorBit:
+        return ErrorBit(self._request(timeout_s, "torque", enabled))
+
+    def wait_for(self, predicate: Any, timeout_s: float) -> ServoState:
+        """Poll :meth:`latest` until ``predicate(state)`` (bench/preflight helper, not the loop).
+        Raises :class:`ServoError` with the last state on timeout."""
+        deadline = time.monotonic() + timeout_s
+        state = self.latest()
+        while not predicate(state):
+            if time.monotonic() > deadline:
+                raise ServoError(self.config.uri, f"timed out waiting; last state {state}")
+            time.sleep(1.0 / self.config.rate_hz)
+            state = self.latest()
+        return state
+
+    def with_config(self, **changes: Any) -> TiltServoConfig:
+        return replace(self.config, **changes)
