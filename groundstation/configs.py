@@ -15,3 +15,13 @@ def load_vehicle(name_or_path: str | Path = DEFAULT_VEHICLE) -> VehicleParams:
     """A shipped vehicle by name (``fasthex``, ``fasthex-mini``) or a vehicle YAML file."""
     return load_config(find_config("vehicles", name_or_path), VehicleParams,
                        schema=VEHICLE_SCHEMA, versions=(1,))
+
+
+# Missions (appended; imports kept here so the vehicle part above stays untouched).
+from controller.missions import MISSION_SCHEMA, MissionSpec  # noqa: E402
+
+
+def load_mission(name_or_path: str | Path) -> MissionSpec:
+    """A shipped mission by name (``exp1-hover-tilt-steps``) or a mission YAML file."""
+    return load_config(find_config("missions", name_or_path), MissionSpec,
+                       schema=MISSION_SCHEMA, versions=(1,))
