@@ -1,0 +1,158 @@
+"""The UKF's numerics: process and measurement models, and two interchangeable kernels.
+
+Error state (15): ``x = [p_w, v_w, dtheta_b, b_g, b_a]``; the attitude is
+``q_wb = q_ref (x) Exp(dtheta)`` with the nominal ``q_ref`` kept outside the filter, so the
+filter never averages quaternions (USQUE / error-state pattern). The IMU is the process input:
+
+    q'  = q_ref (x) Exp(dtheta) (x) Exp((gyro - b_g) dt)
+    a_w = R(q_ref (x) Exp(dtheta)) (accel - b_a) + g_w        (g_w = (0, 0, -g))
+    p'  = p + v dt + a_w dt^2 / 2,   v' = v + a_w dt
+    dtheta' = Log(q_ref'^-1 (x) q'),  q_ref' = q_ref (x) Exp((gyro - mean b_g) dt)
+
+:func:`process_model` is written once over leading axes. :class:`FastKernel` pushes all 2n+1
+sigma points through it in one call; :class:`FilterpyKernel` hands the same function to stock
+``filterpy.kalman.UnscentedKalmanFilter``, which calls it once per sigma point. Both use
+filterpy's ``MerweScaledSigmaPoints`` weights; the tests prove they give the same estimates.
+
+The MoCap measurement is ``z = [p_m, Log(q_ref^-1 (x) q_m)]`` with ``h(x) = [p, dtheta]``.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+import numpy.typing as npt
+from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
+
+from .quaternion import left_matrix, quat_exp, quat_log, quat_to_rot
+
+FloatArray = npt.NDArray[np.float64]
+
+MEAS_IDX = np.array([0, 1, 2, 6, 7, 8])
+
+
+def process_model(x: FloatArray, dt: float, *, gyro_rad_s: FloatArray, accel_m_s2: FloatArray,
+                  left_ref: FloatArray, left_next_ref_inv: FloatArray,
+                  gravity_w: FloatArray) -> FloatArray:
+    """Propagate error states ``x`` (..., 15) over ``dt`` with one IMU sample.
+
+    ``left_ref`` = L(q_ref) and ``left_next_ref_inv`` = L(q_ref'^-1) (4x4, see
+    :func:`~estimator.quaternion.left_matrix`) are shared by every sigma point.
+    """
+    q = quat_exp(x[..., 6:9]) @ left_ref.T                   # q_ref (x) Exp(dtheta)
+    a_w = (quat_to_rot(q) @ (accel_m_s2 - x[..., 12:15])[..., None])[..., 0] + gravity_w
+    step = quat_exp((gyro_rad_s - x[..., 9:12]) * dt)
+    q_next = (left_matrix(q) @ step[..., None])[..., 0]
+    out = np.empty_like(x)
+    vel = x[..., 3:6]
+    out[..., 0:3] = x[..., 0:3] + vel * dt + (0.5 * dt * dt) * a_w
+    out[..., 3:6] = vel + a_w * dt
+    out[..., 6:9] = quat_log(q_next @ left_next_ref_inv.T)
+    out[..., 9:] = x[..., 9:]
+    return out
+
+
+def measurement_model(x: FloatArray) -> FloatArray:
+    """h(x) = [p, dtheta] (..., 6)."""
+    return x[..., MEAS_IDX]
+
+
+def make_sigma_points(n: int, alpha: float, beta: float, kappa: float) -> MerweScaledSigmaPoints:
+    return MerweScaledSigmaPoints(n, alpha=alpha, beta=beta, kappa=kappa)
+
+
+class UpdateResult(Protocol):
+    x: FloatArray
+    P: FloatArray
+    y: FloatArray
+    S: FloatArray
+
+
+class Kernel(Protocol):
+    """One predict or one (not yet accepted) update of the error-state UKF."""
+
+    def predict(self, x: FloatArray, P: FloatArray, Q: FloatArray, dt: float,
+                gyro_rad_s: FloatArray, accel_m_s2: FloatArray, left_ref: FloatArray,
+                left_next_ref_inv: FloatArray) -> tuple[FloatArray, FloatArray]: ...
+
+    def update(self, x: FloatArray, P: FloatArray, z: FloatArray, R: FloatArray
+               ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """-> (x_post, P_post, innovation y, innovation covariance S)."""
+        ...
+
+
+class FastKernel:
+    """All sigma points as one array; filterpy's sigma-point parameters and weights."""
+
+    def __init__(self, n: int, alpha: float, beta: float, kappa: float,
+                 gravity_w: FloatArray) -> None:
+        points = make_sigma_points(n, alpha, beta, kappa)
+        self.n = n
+        self.Wm = np.asarray(points.Wm, dtype=np.float64)
+        self.Wc = np.asarray(points.Wc, dtype=np.float64)
+        self.scale = alpha ** 2 * (n + kappa)            # = n + lambda
+        self.gravity_w = gravity_w
+        self._sigmas = np.empty((2 * n + 1, n))
+
+    def sigma_points(self, x: FloatArray, P: FloatArray) -> FloatArray:
+        """Same points as ``MerweScaledSigmaPoints.sigma_points`` (rows of the upper factor)."""
+        U = np.linalg.cholesky(self.scale * P).T
+        s = self._sigmas
+        n = self.n
+        s[:] = x
+        s[1:n + 1] += U
+        s[n + 1:] -= U
+        return s
+
+    def predict(self, x: FloatArray, P: FloatArray, Q: FloatArray, dt: float,
+                gyro_rad_s: FloatArray, accel_m_s2: FloatArray, left_ref: FloatArray,
+                left_next_ref_inv: FloatArray) -> tuple[FloatArray, FloatArray]:
+        sig = process_model(self.sigma_points(x, P), dt, gyro_rad_s=gyro_rad_s,
+                            accel_m_s2=accel_m_s2, left_ref=left_ref,
+                            left_next_ref_inv=left_next_ref_inv, gravity_w=self.gravity_w)
+        x_new = self.Wm @ sig
+        dev = sig - x_new
+        return x_new, (dev.T * self.Wc) @ dev + Q
+
+    def update(self, x: FloatArray, P: FloatArray, z: FloatArray, R: FloatArray
+               ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        sig = self.sigma_points(x, P)
+        sig_h = sig[:, MEAS_IDX]
+        zp = self.Wm @ sig_h
+        dz = sig_h - zp
+        wdz = dz * self.Wc[:, None]
+        S = dz.T @ wdz + R
+        Pxz = (sig - x).T @ wdz
+        K = Pxz @ np.linalg.inv(S)
+        y = z - zp
+        return x + K @ y, P - K @ S @ K.T, y, S
+
+
+class FilterpyKernel:
+    """Stock filterpy ``UnscentedKalmanFilter``: per-sigma-point ``fx``/``hx``. The reference."""
+
+    def __init__(self, n: int, alpha: float, beta: float, kappa: float,
+                 gravity_w: FloatArray) -> None:
+        self.points = make_sigma_points(n, alpha, beta, kappa)
+        self.gravity_w = gravity_w
+        self.ukf = UnscentedKalmanFilter(dim_x=n, dim_z=6, dt=0.002, hx=measurement_model,
+                                         fx=process_model, points=self.points)
+
+    def predict(self, x: FloatArray, P: FloatArray, Q: FloatArray, dt: float,
+                gyro_rad_s: FloatArray, accel_m_s2: FloatArray, left_ref: FloatArray,
+                left_next_ref_inv: FloatArray) -> tuple[FloatArray, FloatArray]:
+        f = self.ukf
+        f.x, f.P, f.Q = x.copy(), P.copy(), Q
+        f.predict(dt=dt, gyro_rad_s=gyro_rad_s, accel_m_s2=accel_m_s2, left_ref=left_ref,
+                  left_next_ref_inv=left_next_ref_inv, gravity_w=self.gravity_w)
+        return f.x.copy(), f.P.copy()
+
+    def update(self, x: FloatArray, P: FloatArray, z: FloatArray, R: FloatArray
+               ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        f = self.ukf
+        f.x, f.P = x.copy(), P.copy()
+        # x changed since predict (attitude folded into q_ref): redraw, as filterpy#172 advises.
+        f.sigmas_f = self.points.sigma_points(f.x, f.P)
+        f.update(z, R=R)
+        return f.x.copy(), f.P.copy(), f.y.copy(), f.S.copy()

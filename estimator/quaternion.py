@@ -1,0 +1,146 @@
+"""Unit quaternions and rotation vectors, vectorised over leading axes.
+
+Conventions: Hamilton product, components ``(w, x, y, z)``; ``q_wb`` rotates body vectors into the
+world frame (``v_w = R(q_wb) v_b``). Rotation vectors are axis * angle in radians. Every function
+accepts arrays of shape ``(..., 4)`` or ``(..., 3)`` so that one call handles a single quaternion
+or all sigma points of the UKF at once; the products are written as small matrix products
+(``L(q) p``) because one ``matmul`` over a stack is far cheaper than sixteen element-wise ops.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+FloatArray = npt.NDArray[np.float64]
+
+IDENTITY: FloatArray = np.array([1.0, 0.0, 0.0, 0.0])
+
+
+def _left_basis() -> FloatArray:
+    """E with L(q) = sum_k q_k E[k]; L(q) p = q (x) p."""
+    basis = np.zeros((4, 4, 4))
+    for k in range(4):
+        w, x, y, z = np.eye(4)[k]
+        basis[k] = [[w, -x, -y, -z],
+                    [x, w, -z, y],
+                    [y, z, w, -x],
+                    [z, -y, x, w]]
+    return basis
+
+
+def _rotation_quadratic_form() -> FloatArray:
+    """C with R(q)_ij = sum_kl q_k q_l C[k, l, i, j] (homogeneous form, exact for unit q)."""
+
+    def homogeneous(q: FloatArray) -> FloatArray:
+        w, x, y, z = q
+        return np.array([
+            [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z]])
+
+    eye = np.eye(4)
+    form = np.zeros((4, 4, 3, 3))
+    for k in range(4):
+        for m in range(4):
+            if k == m:
+                form[k, m] = homogeneous(eye[k])
+            else:  # polarisation of the quadratic form, split evenly between (k, m) and (m, k)
+                both = homogeneous(eye[k] + eye[m]) - homogeneous(eye[k]) - homogeneous(eye[m])
+                form[k, m] = 0.5 * both
+    return form
+
+
+_LEFT_BASIS = _left_basis().reshape(4, 16)
+_ROT_FORM = _rotation_quadratic_form().reshape(16, 9)
+_CONJ = np.array([1.0, -1.0, -1.0, -1.0])
+
+
+def left_matrix(q: FloatArray) -> FloatArray:
+    """L(q), shape (..., 4, 4), such that ``L(q) @ p == q (x) p``."""
+    return (q @ _LEFT_BASIS).reshape(*q.shape[:-1], 4, 4)
+
+
+def quat_mul(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Hamilton product a (x) b, broadcast over leading axes."""
+    return (left_matrix(a) @ b[..., None])[..., 0]
+
+
+def quat_conj(q: FloatArray) -> FloatArray:
+    """Conjugate (the inverse of a unit quaternion)."""
+    return q * _CONJ
+
+
+def quat_normalize(q: FloatArray) -> FloatArray:
+    """q / |q|, with the scalar part made non-negative (q and -q are the same rotation)."""
+    q = np.asarray(q, dtype=np.float64)
+    sign = np.copysign(1.0, q[..., :1])
+    return q * (sign / np.linalg.norm(q, axis=-1, keepdims=True))
+
+
+def quat_exp(rotvec: FloatArray) -> FloatArray:
+    """Exp: rotation vector (..., 3) -> unit quaternion (..., 4); exact at zero angle."""
+    angle = np.sqrt(np.sum(rotvec * rotvec, axis=-1))
+    out = np.empty((*rotvec.shape[:-1], 4))
+    out[..., 0] = np.cos(0.5 * angle)
+    # sin(angle/2)/angle == 0.5 * sinc(angle / (2 pi)) with numpy's normalised sinc.
+    out[..., 1:] = rotvec * (0.5 * np.sinc(angle * (0.5 / np.pi)))[..., None]
+    return out
+
+
+def quat_log(q: FloatArray) -> FloatArray:
+    """Log: unit quaternion (..., 4) -> rotation vector (..., 3) of angle <= pi."""
+    w = q[..., 0]
+    v = q[..., 1:]
+    s = np.sqrt(np.sum(v * v, axis=-1))
+    factor = 2.0 * np.arctan2(s, np.abs(w)) / np.where(s > 0.0, s, 1.0) * np.copysign(1.0, w)
+    return v * factor[..., None]
+
+
+def quat_to_rot(q: FloatArray) -> FloatArray:
+    """Rotation matrix (..., 3, 3) of a unit quaternion (..., 4)."""
+    outer = q[..., :, None] * q[..., None, :]
+    return (outer.reshape(*q.shape[:-1], 16) @ _ROT_FORM).reshape(*q.shape[:-1], 3, 3)
+
+
+def quat_rotate(q: FloatArray, v: FloatArray) -> FloatArray:
+    """R(q) v, broadcast over leading axes."""
+    return (quat_to_rot(q) @ v[..., None])[..., 0]
+
+
+def rot_to_quat(rot: FloatArray) -> FloatArray:
+    """Unit quaternion (w >= 0) of a single rotation matrix (Shepperd's method)."""
+    m = np.asarray(rot, dtype=np.float64)
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    diag = (trace, m[0, 0], m[1, 1], m[2, 2])
+    k = int(np.argmax(diag))
+    if k == 0:
+        s = 2.0 * np.sqrt(1.0 + trace)
+        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+    elif k == 1:
+        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
+    elif k == 2:
+        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
+    return quat_normalize(np.array(q))
+
+
+def quat_from_euler_zyx(roll_rad: FloatArray | float, pitch_rad: FloatArray | float,
+                        yaw_rad: FloatArray | float) -> FloatArray:
+    """q_wb of ZYX Euler angles (R = Rz(yaw) Ry(pitch) Rx(roll)), broadcast over inputs."""
+    r, p, y = (0.5 * np.asarray(a, dtype=np.float64) for a in (roll_rad, pitch_rad, yaw_rad))
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    return np.stack([cr * cp * cy + sr * sp * sy,
+                     sr * cp * cy - cr * sp * sy,
+                     cr * sp * cy + sr * cp * sy,
+                     cr * cp * sy - sr * sp * cy], axis=-1)
+
+
+def angle_between(q_a: FloatArray, q_b: FloatArray) -> FloatArray:
+    """Geodesic angle (rad) between two rotations, broadcast over leading axes."""
+    rel = quat_mul(quat_conj(q_a), q_b)
+    return np.sqrt(np.sum(quat_log(rel) ** 2, axis=-1))

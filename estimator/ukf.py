@@ -1,0 +1,522 @@
+"""The 500 Hz error-state UKF fusing the IMU with late MoCap poses.
+
+One instance serves the control loop::
+
+    est = Ukf(EstimatorConfig())
+    est.predict(imu_t_s, gyro_rad_s, accel_m_s2, force_cmd_b_n)  # every IMU sample
+    est.update_pose(capture_t_s, pos_w_m, q_wb)                  # every new MoCap frame
+    state = est.estimate()                                       # every tick
+
+Timeline and delay compensation: every predict appends the state after it, plus the IMU input
+that produced it, to a ring covering ``history_s``. A pose captured at ``t_c`` (before the newest
+IMU sample) is fused at ``t_c``: the ring is rewound to the last state at or before ``t_c``, the
+state is propagated to exactly ``t_c`` with the IMU input of that interval, the pose is fused,
+and the remaining IMU inputs are replayed, rewriting the ring (pom / robot_localization style).
+A pose older than the ring is dropped and counted.
+
+Robustness: a chi-square gate on the 6-D innovation skips an update (counted); after
+``max_consecutive_rejections`` in a row the position and attitude are re-seeded from MoCap
+(a marker swap that stays). P is symmetrised and its diagonal floored after every step; a
+failed Cholesky is repaired by clipping the eigenvalues (counted). Without poses the filter dead
+reckons on the IMU and P grows; health flags report it (:class:`~estimator.types.HealthFlag`).
+
+Initialisation: the first ``init_rest_s`` of IMU samples with at least ``init_min_poses`` poses,
+the vehicle at rest, give the gyro bias (mean gyro), the accelerometer bias (mean specific force
+minus gravity seen in the MoCap attitude), the position and the attitude.
+
+External-force observer: with ``force_observer`` on and the controller's commanded body force
+given to :meth:`Ukf.predict`, ``m R (accel - b_a) - R F_cmd`` is an instantaneous measurement of
+the unmodelled force in the world frame; a random-walk Kalman state filters it. It is kept out of
+the 15-state UKF on purpose: the accelerometer already drives the kinematic prediction there, and
+fusing the same samples a second time would count their noise twice.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from typing import Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from .config import EstimatorConfig
+from .kernels import FastKernel, FilterpyKernel, Kernel
+from .quaternion import (
+    left_matrix,
+    quat_conj,
+    quat_exp,
+    quat_log,
+    quat_mul,
+    quat_normalize,
+    quat_to_rot,
+)
+from .types import (
+    ACCEL_BIAS,
+    ATT,
+    GYRO_BIAS,
+    POS,
+    STATE_DIM,
+    VEL,
+    EstimatorHealth,
+    HealthFlag,
+    StateEstimate,
+)
+
+FloatArray = npt.NDArray[np.float64]
+ArrayLike = npt.ArrayLike
+
+_TIME_EPS_S = 1e-9
+
+
+class PoseVerdict(enum.Enum):
+    """What :meth:`Ukf.update_pose` did with a pose."""
+
+    ACCEPTED = "accepted"
+    REJECTED = "rejected"            # failed the Mahalanobis gate
+    RESET = "reset"                  # rejected once too often: position/attitude re-seeded
+    TOO_OLD = "too_old"              # captured before the history window
+    INITIALIZING = "initializing"    # collected for the rest-period initialisation
+
+
+class _RestCollector:
+    """Running sums over the rest period that starts the filter."""
+
+    def __init__(self) -> None:
+        self.clear()
+
+    def clear(self) -> None:
+        self.t_first_s = math.nan
+        self.n_imu = 0
+        self.gyro_sum = np.zeros(3)
+        self.gyro_sq = np.zeros(3)
+        self.accel_sum = np.zeros(3)
+        self.accel_sq = np.zeros(3)
+        self.n_pose = 0
+        self.pos_sum = np.zeros(3)
+        self.pos_min = np.full(3, np.inf)
+        self.pos_max = np.full(3, -np.inf)
+        self.q_sum = np.zeros(4)
+
+    def add_imu(self, t_s: float, gyro: FloatArray, accel: FloatArray) -> None:
+        if self.n_imu == 0:
+            self.t_first_s = t_s
+        self.n_imu += 1
+        self.gyro_sum += gyro
+        self.gyro_sq += gyro * gyro
+        self.accel_sum += accel
+        self.accel_sq += accel * accel
+
+    def add_pose(self, pos: FloatArray, q: FloatArray) -> None:
+        self.n_pose += 1
+        self.pos_sum += pos
+        np.minimum(self.pos_min, pos, out=self.pos_min)
+        np.maximum(self.pos_max, pos, out=self.pos_max)
+        # q and -q are the same attitude: align signs before averaging (small spread at rest).
+        self.q_sum += q if self.n_pose == 1 or float(q @ self.q_sum) >= 0.0 else -q
+
+    @staticmethod
+    def std(total: FloatArray, sq: FloatArray, n: int) -> float:
+        mean = total / n
+        return float(np.sqrt(np.max(np.maximum(sq / n - mean * mean, 0.0))))
+
+
+class Ukf:
+    """Error-state UKF on [p, v, dtheta, b_g, b_a]; see the module docstring.
+
+    ``kernel="fast"`` (default) propagates all sigma points as one array; ``kernel="filterpy"``
+    runs the same models through stock filterpy, one sigma point at a time (reference/baseline).
+    """
+
+    def __init__(self, cfg: EstimatorConfig | None = None,
+                 kernel: Literal["fast", "filterpy"] = "fast") -> None:
+        self.cfg = cfg = cfg if cfg is not None else EstimatorConfig()
+        self._gravity_w = np.array([0.0, 0.0, -cfg.gravity_m_s2])
+        kernel_cls = FastKernel if kernel == "fast" else FilterpyKernel
+        self._kernel: Kernel = kernel_cls(STATE_DIM, cfg.sigma_alpha, cfg.sigma_beta,
+                                          cfg.sigma_kappa, self._gravity_w)
+        self._R = np.diag([cfg.mocap_pos_sigma_m ** 2] * 3
+                          + [math.radians(cfg.mocap_att_sigma_deg) ** 2] * 3)
+        self._diag = np.diag_indices(STATE_DIM)
+        self._q_cache_dt = math.nan
+        self._q_cache = np.zeros((STATE_DIM, STATE_DIM))
+        # current state
+        self._initialized = False
+        self._t_s = math.nan
+        self._x = np.zeros(STATE_DIM)
+        self._P = np.eye(STATE_DIM)
+        self._q_ref = np.array([1.0, 0.0, 0.0, 0.0])
+        self._prev_gyro: FloatArray | None = None
+        self._prev_accel: FloatArray | None = None
+        self._last_gyro = np.zeros(3)
+        self._nonfinite = False
+        # history ring: the state after each predict and the input that led to it
+        n_hist = cfg.history_len
+        self._hist_t = np.full(n_hist, -np.inf)
+        self._hist_x = np.zeros((n_hist, STATE_DIM))
+        self._hist_P = np.zeros((n_hist, STATE_DIM, STATE_DIM))
+        self._hist_q = np.zeros((n_hist, 4))
+        self._hist_gyro = np.zeros((n_hist, 3))
+        self._hist_accel = np.zeros((n_hist, 3))
+        self._hist_head = 0
+        self._hist_len = 0
+        # force observer (isotropic variance: the accelerometer noise is isotropic)
+        self._force_w = np.zeros(3)
+        self._force_var = cfg.init_force_sigma_n ** 2
+        # bookkeeping
+        self._rest = _RestCollector()
+        self._last_pose_t_s = -math.inf
+        self._accepted = 0
+        self._rejected = 0
+        self._consecutive = 0
+        self._too_old = 0
+        self._resets = 0
+        self._repairs = 0
+        self._imu_out_of_order = 0
+        self._last_nis = math.nan
+
+    # -- public API -----------------------------------------------------------------------------
+    @property
+    def initialized(self) -> bool:
+        return self._initialized
+
+    @property
+    def t_s(self) -> float:
+        """Time of the current state (the newest IMU sample); nan before the first one."""
+        return self._t_s
+
+    def initialize(self, t_s: float, pos_w_m: ArrayLike, q_wb: ArrayLike,
+                   vel_w_m_s: ArrayLike = (0.0, 0.0, 0.0),
+                   gyro_bias_rad_s: ArrayLike = (0.0, 0.0, 0.0),
+                   accel_bias_m_s2: ArrayLike = (0.0, 0.0, 0.0)) -> None:
+        """Start the filter from a known state at ``t_s`` (the rest-period path calls this)."""
+        self._x = np.zeros(STATE_DIM)
+        self._x[POS] = np.asarray(pos_w_m, dtype=np.float64)
+        self._x[VEL] = np.asarray(vel_w_m_s, dtype=np.float64)
+        self._x[GYRO_BIAS] = np.asarray(gyro_bias_rad_s, dtype=np.float64)
+        self._x[ACCEL_BIAS] = np.asarray(accel_bias_m_s2, dtype=np.float64)
+        self._q_ref = quat_normalize(np.asarray(q_wb, dtype=np.float64))
+        self._P = self._initial_covariance()
+        self._t_s = float(t_s)
+        self._initialized = True
+        self._nonfinite = False
+        self._last_pose_t_s = float(t_s)
+        self._hist_len = 0
+        self._push_history(self._prev_gyro if self._prev_gyro is not None else np.zeros(3),
+                           self._prev_accel if self._prev_accel is not None else np.zeros(3))
+
+    def _initial_covariance(self) -> FloatArray:
+        cfg = self.cfg
+        return np.diag([cfg.init_pos_sigma_m ** 2] * 3 + [cfg.init_vel_sigma_m_s ** 2] * 3
+                       + [math.radians(cfg.init_att_sigma_deg) ** 2] * 3
+                       + [cfg.init_gyro_bias_sigma_rad_s ** 2] * 3
+                       + [cfg.init_accel_bias_sigma_m_s2 ** 2] * 3)
+
+    def predict(self, imu_t_s: float, gyro_rad_s: ArrayLike, accel_m_s2: ArrayLike,
+                force_cmd_b_n: ArrayLike | None = None) -> None:
+        """Propagate to ``imu_t_s`` with one IMU sample (body frame, specific force).
+
+        ``force_cmd_b_n`` is the body-frame force the controller commanded (for the force
+        observer); ``None`` leaves the force estimate to its time update.
+        """
+        gyro = np.asarray(gyro_rad_s, dtype=np.float64)
+        accel = np.asarray(accel_m_s2, dtype=np.float64)
+        t = float(imu_t_s)
+        if not self._initialized:
+            if self._prev_gyro is not None and not t > self._t_s:
+                self._imu_out_of_order += 1
+                return
+            self._t_s = t
+            self._prev_gyro, self._prev_accel, self._last_gyro = gyro, accel, gyro
+            self._rest.add_imu(t, gyro, accel)
+            self._try_initialize()
+            return
+        dt = t - self._t_s
+        if not dt > 0.0:
+            self._imu_out_of_order += 1
+            return
+        if self._prev_gyro is None or self._prev_accel is None:
+            g_in, a_in = gyro, accel
+        elif self.cfg.imu_integration == "trapezoid":
+            g_in, a_in = 0.5 * (self._prev_gyro + gyro), 0.5 * (self._prev_accel + accel)
+        else:
+            g_in, a_in = gyro, accel
+        self._prev_gyro, self._prev_accel, self._last_gyro = gyro, accel, gyro
+        x, P, q = self._propagate(self._x, self._P, self._q_ref, dt, g_in, a_in)
+        if not math.isfinite(float(x.sum()) + float(P.trace())):
+            self._nonfinite = True          # keep the last finite state; a pose re-seeds it
+            self._t_s = t
+            return
+        self._x, self._P, self._q_ref, self._t_s = x, P, q, t
+        self._push_history(g_in, a_in)
+        if self.cfg.force_observer:
+            self._observe_force(dt, accel, force_cmd_b_n)
+
+    def update_pose(self, capture_t_s: float, pos_w_m: ArrayLike, q_wb: ArrayLike
+                    ) -> PoseVerdict:
+        """Fuse a MoCap pose captured at ``capture_t_s`` (IMU clock), compensating its age."""
+        pos = np.asarray(pos_w_m, dtype=np.float64)
+        q_m = quat_normalize(np.asarray(q_wb, dtype=np.float64))
+        if not self._initialized:
+            self._rest.add_pose(pos, q_m)
+            self._try_initialize()
+            return PoseVerdict.INITIALIZING
+        if self._nonfinite:
+            self._reseed(pos, q_m, zero_velocity=True)
+            return PoseVerdict.RESET
+        t_c = float(capture_t_s)
+        if not self.cfg.latency_compensation or t_c >= self._t_s - _TIME_EPS_S:
+            fused = self._fuse(self._x, self._P, self._q_ref, pos, q_m)
+            if fused is None:
+                return self._rejected_pose(pos, q_m)
+            self._x, self._P, self._q_ref = fused
+            self._write_history(self._hist_head)
+            return self._accepted_pose(t_c)
+        return self._fuse_in_past(t_c, pos, q_m)
+
+    def estimate(self) -> StateEstimate:
+        """The state at the newest IMU sample, with covariance, force estimate and health."""
+        x = self._x
+        omega = self._last_gyro - x[GYRO_BIAS]
+        return StateEstimate(
+            t_s=self._t_s, pos_w_m=x[POS].copy(), vel_w_m_s=x[VEL].copy(),
+            q_wb=self._q_ref.copy(), omega_b_rad_s=omega,
+            gyro_bias_rad_s=x[GYRO_BIAS].copy(), accel_bias_m_s2=x[ACCEL_BIAS].copy(),
+            cov=self._P.copy(), force_ext_w_n=self._force_w.copy(),
+            force_ext_sigma_n=math.sqrt(self._force_var), health=self.health())
+
+    def health(self) -> EstimatorHealth:
+        cfg = self.cfg
+        flags = HealthFlag.OK
+        age = self._t_s - self._last_pose_t_s if self._initialized else math.inf
+        if not self._initialized:
+            flags |= HealthFlag.NOT_INITIALIZED
+        else:
+            if age > cfg.mocap_stale_s:
+                flags |= HealthFlag.MOCAP_STALE
+            var = np.diag(self._P)
+            if (self._nonfinite or float(np.max(var[POS])) > cfg.diverged_pos_sigma_m ** 2
+                    or float(np.max(var[ATT])) > math.radians(cfg.diverged_att_sigma_deg) ** 2):
+                flags |= HealthFlag.DIVERGED
+            if float(np.max(np.abs(self._x[GYRO_BIAS]))) > cfg.max_gyro_bias_rad_s:
+                flags |= HealthFlag.GYRO_BIAS_OUT_OF_RANGE
+            if float(np.max(np.abs(self._x[ACCEL_BIAS]))) > cfg.max_accel_bias_m_s2:
+                flags |= HealthFlag.ACCEL_BIAS_OUT_OF_RANGE
+        return EstimatorHealth(
+            flags=flags, mocap_age_s=age, poses_accepted=self._accepted,
+            poses_rejected=self._rejected, consecutive_rejections=self._consecutive,
+            poses_too_old=self._too_old, resets=self._resets,
+            covariance_repairs=self._repairs, imu_out_of_order=self._imu_out_of_order,
+            last_nis=self._last_nis)
+
+    # -- propagation and fusion -----------------------------------------------------------------
+    def _process_noise(self, dt: float) -> FloatArray:
+        if dt == self._q_cache_dt:
+            return self._q_cache
+        cfg = self.cfg
+        qa = cfg.accel_noise_m_s2_sqrt_hz ** 2
+        Q = np.zeros((STATE_DIM, STATE_DIM))
+        i3 = np.eye(3)
+        Q[POS, POS] = qa * dt ** 3 / 3.0 * i3
+        Q[POS, VEL] = Q[VEL, POS] = qa * dt ** 2 / 2.0 * i3
+        Q[VEL, VEL] = qa * dt * i3
+        Q[ATT, ATT] = cfg.gyro_noise_rad_s_sqrt_hz ** 2 * dt * i3
+        Q[GYRO_BIAS, GYRO_BIAS] = cfg.gyro_bias_walk_rad_s2_sqrt_hz ** 2 * dt * i3
+        Q[ACCEL_BIAS, ACCEL_BIAS] = cfg.accel_bias_walk_m_s3_sqrt_hz ** 2 * dt * i3
+        self._q_cache_dt, self._q_cache = dt, Q
+        return Q
+
+    def _propagate(self, x: FloatArray, P: FloatArray, q_ref: FloatArray, dt: float,
+                   gyro: FloatArray, accel: FloatArray
+                   ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        q_next = quat_mul(q_ref, quat_exp((gyro - x[GYRO_BIAS]) * dt))
+        args = (self._process_noise(dt), dt, gyro, accel, left_matrix(q_ref),
+                left_matrix(quat_conj(q_next)))
+        try:
+            x1, P1 = self._kernel.predict(x, P, *args)
+        except np.linalg.LinAlgError:
+            x1, P1 = self._kernel.predict(x, self._repair_spd(P), *args)
+        q1 = self._fold_attitude(x1, q_next)
+        return x1, self._condition(P1), q1
+
+    def _fuse(self, x: FloatArray, P: FloatArray, q_ref: FloatArray, pos: FloatArray,
+              q_m: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+        """Gated update; ``None`` when the gate rejects (inputs are never modified)."""
+        z = np.concatenate((pos, quat_log(quat_mul(quat_conj(q_ref), q_m))))
+        try:
+            x1, P1, y, S = self._kernel.update(x, P, z, self._R)
+        except np.linalg.LinAlgError:
+            x1, P1, y, S = self._kernel.update(x, self._repair_spd(P), z, self._R)
+        nis = float(y @ np.linalg.solve(S, y))
+        self._last_nis = nis
+        if not nis <= self.cfg.gate_nis:
+            return None
+        q1 = self._fold_attitude(x1, q_ref)
+        return x1, self._condition(P1), q1
+
+    def _fold_attitude(self, x: FloatArray, q_ref: FloatArray) -> FloatArray:
+        """Move the attitude error into the nominal quaternion and zero it (in place on x)."""
+        q = quat_mul(q_ref, quat_exp(x[ATT]))
+        x[ATT] = 0.0
+        return q / math.sqrt(float(q @ q))
+
+    def _condition(self, P: FloatArray) -> FloatArray:
+        """Symmetrise, floor the variances, cap the position sigma (congruence keeps P SPD)."""
+        P = 0.5 * (P + P.T)
+        d = P[self._diag]
+        cfg = self.cfg
+        if float(d.min()) < cfg.min_variance:
+            P[self._diag] = np.maximum(d, cfg.min_variance)
+        cap = cfg.max_pos_sigma_m ** 2
+        if float(d[POS].max()) > cap:
+            scale = np.ones(STATE_DIM)
+            scale[POS] = np.sqrt(np.minimum(1.0, cap / d[POS]))
+            P = P * scale[:, None] * scale[None, :]
+        return P
+
+    def _repair_spd(self, P: FloatArray) -> FloatArray:
+        self._repairs += 1
+        w, V = np.linalg.eigh(0.5 * (P + P.T))
+        floor = max(self.cfg.min_variance, 1e-12 * float(np.max(np.abs(w))))
+        return (V * np.maximum(w, floor)) @ V.T
+
+    def _fuse_in_past(self, t_c: float, pos: FloatArray, q_m: FloatArray) -> PoseVerdict:
+        n_hist = len(self._hist_t)
+        k = 0
+        while k < self._hist_len and self._hist_t[(self._hist_head - k) % n_hist] > t_c:
+            k += 1
+        if k >= self._hist_len:
+            self._too_old += 1
+            return PoseVerdict.TOO_OLD
+        j = (self._hist_head - k) % n_hist
+        x, P, q = self._hist_x[j].copy(), self._hist_P[j].copy(), self._hist_q[j].copy()
+        t_j = float(self._hist_t[j])
+        if t_c > t_j + _TIME_EPS_S:
+            # split the interval (t_j, t_j+1] at the capture time; same IMU input on both sides
+            j1 = (j + 1) % n_hist
+            g_in, a_in = self._hist_gyro[j1], self._hist_accel[j1]
+            x, P, q = self._propagate(x, P, q, t_c - t_j, g_in, a_in)
+            fused = self._fuse(x, P, q, pos, q_m)
+            if fused is None:
+                return self._rejected_pose(pos, q_m)
+            x, P, q = self._propagate(*fused, float(self._hist_t[j1]) - t_c, g_in, a_in)
+            k -= 1
+        else:
+            fused = self._fuse(x, P, q, pos, q_m)
+            if fused is None:
+                return self._rejected_pose(pos, q_m)
+            x, P, q = fused
+        self._store(x, P, q, (self._hist_head - k) % n_hist)
+        while k > 0:
+            k -= 1
+            i = (self._hist_head - k) % n_hist
+            dt = float(self._hist_t[i] - self._hist_t[(i - 1) % n_hist])
+            x, P, q = self._propagate(x, P, q, dt, self._hist_gyro[i], self._hist_accel[i])
+            self._store(x, P, q, i)
+        self._x, self._P, self._q_ref = x, P, q
+        return self._accepted_pose(t_c)
+
+    def _accepted_pose(self, t_c: float) -> PoseVerdict:
+        self._accepted += 1
+        self._consecutive = 0
+        self._last_pose_t_s = max(self._last_pose_t_s, t_c)
+        return PoseVerdict.ACCEPTED
+
+    def _rejected_pose(self, pos: FloatArray, q_m: FloatArray) -> PoseVerdict:
+        self._rejected += 1
+        self._consecutive += 1
+        if self._consecutive < self.cfg.max_consecutive_rejections:
+            return PoseVerdict.REJECTED
+        self._reseed(pos, q_m, zero_velocity=False)
+        return PoseVerdict.RESET
+
+    def _reseed(self, pos: FloatArray, q_m: FloatArray, zero_velocity: bool) -> None:
+        """Re-seed position and attitude from MoCap (marker swap that stays, or NaN state)."""
+        cfg = self.cfg
+        self._resets += 1
+        self._consecutive = 0
+        x = self._x.copy()
+        P = self._P.copy()
+        if self._nonfinite or not np.all(np.isfinite(x)):
+            x = np.zeros(STATE_DIM)
+            P = self._initial_covariance()
+        x[POS] = pos
+        x[ATT] = 0.0
+        reset = [POS, ATT, VEL] if zero_velocity else [POS, ATT]
+        if zero_velocity:
+            x[VEL] = 0.0
+        for block in reset:
+            P[block, :] = 0.0
+            P[:, block] = 0.0
+        P[POS, POS] = cfg.init_pos_sigma_m ** 2 * np.eye(3)
+        P[ATT, ATT] = math.radians(cfg.init_att_sigma_deg) ** 2 * np.eye(3)
+        if zero_velocity:
+            P[VEL, VEL] = cfg.init_vel_sigma_m_s ** 2 * np.eye(3)
+        self._x, self._P, self._q_ref = x, P, q_m.copy()
+        self._nonfinite = False
+        self._last_pose_t_s = self._t_s
+        # the history no longer matches the re-seeded state: restart it from here
+        self._hist_len = 0
+        self._push_history(self._prev_gyro if self._prev_gyro is not None else np.zeros(3),
+                           self._prev_accel if self._prev_accel is not None else np.zeros(3))
+
+    # -- history ring -----------------------------------------------------------------------------
+    def _push_history(self, gyro: FloatArray, accel: FloatArray) -> None:
+        n_hist = len(self._hist_t)
+        self._hist_head = (self._hist_head + 1) % n_hist
+        self._hist_len = min(self._hist_len + 1, n_hist)
+        i = self._hist_head
+        self._hist_t[i] = self._t_s
+        self._hist_gyro[i] = gyro
+        self._hist_accel[i] = accel
+        self._write_history(i)
+
+    def _write_history(self, i: int) -> None:
+        self._hist_x[i] = self._x
+        self._hist_P[i] = self._P
+        self._hist_q[i] = self._q_ref
+
+    def _store(self, x: FloatArray, P: FloatArray, q: FloatArray, i: int) -> None:
+        self._hist_x[i] = x
+        self._hist_P[i] = P
+        self._hist_q[i] = q
+
+    # -- initialisation and force observer ----------------------------------------------------
+    def _try_initialize(self) -> None:
+        cfg = self.cfg
+        rest = self._rest
+        if rest.n_imu < 2 or rest.n_pose < cfg.init_min_poses:
+            return
+        if self._t_s - rest.t_first_s < cfg.init_rest_s:
+            return
+        at_rest = (rest.std(rest.gyro_sum, rest.gyro_sq, rest.n_imu) <= cfg.rest_gyro_std_rad_s
+                   and rest.std(rest.accel_sum, rest.accel_sq, rest.n_imu)
+                   <= cfg.rest_accel_std_m_s2
+                   and float(np.max(rest.pos_max - rest.pos_min)) <= cfg.rest_pos_spread_m)
+        if not at_rest:
+            rest.clear()                    # moving: start a new rest period
+            return
+        q = quat_normalize(rest.q_sum)
+        gyro_bias = rest.gyro_sum / rest.n_imu
+        # at rest the specific force is R^T (0, 0, g); the rest of the mean is the bias
+        accel_bias = rest.accel_sum / rest.n_imu - quat_to_rot(q).T @ (-self._gravity_w)
+        self.initialize(self._t_s, rest.pos_sum / rest.n_pose, q,
+                        gyro_bias_rad_s=gyro_bias, accel_bias_m_s2=accel_bias)
+        rest.clear()
+
+    def _observe_force(self, dt: float, accel: FloatArray, force_cmd_b_n: ArrayLike | None
+                       ) -> None:
+        cfg = self.cfg
+        self._force_var += cfg.force_walk_n_sqrt_s ** 2 * dt
+        if force_cmd_b_n is None:
+            return
+        m = cfg.mass_kg
+        rot = quat_to_rot(self._q_ref)
+        f_cmd = np.asarray(force_cmd_b_n, dtype=np.float64)
+        z = rot @ (m * (accel - self._x[ACCEL_BIAS]) - f_cmd)
+        # per-sample accelerometer noise variance (density^2 / dt) plus the bias uncertainty
+        r = m * m * (cfg.accel_noise_m_s2_sqrt_hz ** 2 / dt
+                     + float(np.mean(np.diag(self._P)[ACCEL_BIAS])))
+        gain = self._force_var / (self._force_var + r)
+        self._force_w += gain * (z - self._force_w)
+        self._force_var *= 1.0 - gain
