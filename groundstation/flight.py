@@ -1,0 +1,236 @@
+"""The flight state machine: preflight, arm, take off, fly the mission, land, disarm; and the
+failsafes that cut a flight short.
+
+Pure logic, no I/O and no clock of its own: the loop calls :meth:`FlightStateMachine.update`
+once per tick with the tick's time and a :class:`HealthSnapshot`, and operator requests arrive
+through :meth:`FlightStateMachine.request`. The machine answers with what the loop must do
+(:class:`Directive`): whether motors spin, which reference source flies (mission, landing on
+the estimate, none). Every transition is recorded with its time and reason.
+
+States and transitions::
+
+    PREFLIGHT --checks pass + arm--> ARMED --idle spin-up done--> TAKEOFF --at start pose--> MISSION
+    MISSION --mission done--> LANDING --touchdown--> DISARMED
+    any flying state --MoCap lost > timeout | geofence | body tilt | battery low | servo fault
+                       (action land) | operator stop--> LANDING (on the estimate)
+    any flying state --IMU/link lost | second operator stop | failsafe action cut--> CUT
+    CUT --> DISARMED (motors stopped; the Flight-Ctrl watchdog also stops them on link loss)
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from typing import Literal
+
+
+class FlightState(enum.IntEnum):
+    """Numbered so the state fits a telemetry column and a MAVLink custom mode."""
+
+    PREFLIGHT = 0
+    ARMED = 1
+    TAKEOFF = 2
+    MISSION = 3
+    LANDING = 4
+    DISARMED = 5
+    CUT = 6
+
+
+FLYING = frozenset({FlightState.TAKEOFF, FlightState.MISSION, FlightState.LANDING})
+MOTORS_ON = frozenset({FlightState.ARMED, FlightState.TAKEOFF, FlightState.MISSION,
+                       FlightState.LANDING})
+
+
+class ServoHealth(enum.IntEnum):
+    OK = 0
+    DEGRADED = 1  # answering with warning bits (e.g. overload), still moving
+    FAULT = 2     # not answering, or an error that stops it (overheating, voltage)
+
+
+class ReferenceSource(enum.IntEnum):
+    NONE = 0      # motors off or idle: the controller does not fly
+    MISSION = 1   # takeoff, mission and planned landing segments
+    LAND_HERE = 2  # failsafe landing from the current estimate
+
+
+@dataclass(frozen=True, slots=True)
+class HealthSnapshot:
+    """What the loop measured this tick. Ages in seconds on the loop's clock."""
+
+    imu_age_s: float
+    imu_rate_ok: bool
+    mocap_age_s: float
+    estimator_ok: bool
+    servo: ServoHealth
+    battery_v: float
+    pos_w_m: tuple[float, float, float]
+    body_tilt_deg: float
+    on_ground: bool
+    mission_phase: Literal["takeoff", "mission", "land", "done"]
+    motors_spinning: bool
+
+
+@dataclass(frozen=True)
+class SafetyLimits:
+    """The flight's safety envelope (from the session file)."""
+
+    geofence_min_m: tuple[float, float, float]
+    geofence_max_m: tuple[float, float, float]
+    max_body_tilt_deg: float
+    mocap_timeout_s: float
+    imu_timeout_s: float
+    min_battery_v: float
+    failsafe_action: Literal["land", "cut"]
+    servo_fault_action: Literal["hold", "land"]
+    spin_up_s: float = 1.0
+
+
+@dataclass(frozen=True, slots=True)
+class Transition:
+    t_s: float
+    from_state: FlightState
+    to_state: FlightState
+    reason: str
+
+
+@dataclass(frozen=True, slots=True)
+class Directive:
+    """What the loop does this tick."""
+
+    state: FlightState
+    motors_on: bool
+    reference: ReferenceSource
+    hold_tilt: bool  # servo fault with action "hold": keep the measured tilt, stop commanding
+
+
+@dataclass
+class FlightStateMachine:
+    limits: SafetyLimits
+    state: FlightState = FlightState.PREFLIGHT
+    transitions: list[Transition] = field(default_factory=list)
+    faults: list[str] = field(default_factory=list)
+    _armed_at_s: float = 0.0
+    _stop_requests: int = 0
+    _hold_tilt: bool = False
+    _land_here: bool = False
+
+    # -- operator -----------------------------------------------------------------------
+    def request(self, t_s: float, what: Literal["arm", "land", "stop", "cut", "disarm"]
+                ) -> tuple[bool, str]:
+        """An operator request (CLI, Ctrl-C, MAVLink). Returns (accepted, reason)."""
+        if what == "arm":
+            if self.state is not FlightState.PREFLIGHT:
+                return False, f"cannot arm in {self.state.name}"
+            self._go(t_s, FlightState.ARMED, "operator: arm")
+            self._armed_at_s = t_s
+            return True, "armed"
+        if what == "disarm":
+            if self.state in FLYING:
+                return False, f"cannot disarm while {self.state.name}; land first"
+            if self.state is FlightState.DISARMED:
+                return False, "already disarmed"
+            self._go(t_s, FlightState.DISARMED, "operator: disarm")
+            return True, "disarmed"
+        if what == "cut":
+            if self.state in MOTORS_ON:
+                self._cut(t_s, "operator: emergency stop")
+                return True, "motors cut"
+            return False, f"motors are not running ({self.state.name})"
+        if what == "stop":  # Ctrl-C: first lands, second cuts
+            self._stop_requests += 1
+            if self._stop_requests >= 2 and self.state in MOTORS_ON:
+                self._cut(t_s, "operator: second stop request")
+                return True, "motors cut"
+            what = "land"
+        # land
+        if self.state in (FlightState.TAKEOFF, FlightState.MISSION):
+            self._land(t_s, "operator: land", here=True)
+            return True, "landing"
+        if self.state is FlightState.ARMED:
+            self._go(t_s, FlightState.DISARMED, "operator: land before takeoff")
+            return True, "disarmed"
+        if self.state is FlightState.PREFLIGHT:
+            self._go(t_s, FlightState.DISARMED, "operator: stop before arming")
+            return True, "session ended"
+        return False, f"already {self.state.name}"
+
+    # -- per tick -----------------------------------------------------------------------
+    def update(self, t_s: float, h: HealthSnapshot) -> Directive:
+        start = self.state
+        if start in MOTORS_ON:
+            self._check_failsafes(t_s, h)
+        s = self.state
+        if s is FlightState.ARMED and t_s - self._armed_at_s >= self.limits.spin_up_s:
+            self._go(t_s, FlightState.TAKEOFF, "motors at idle speed")
+        elif s is FlightState.TAKEOFF and h.mission_phase != "takeoff":
+            self._go(t_s, FlightState.MISSION, "takeoff complete")
+        elif s is FlightState.MISSION and h.mission_phase in ("land", "done"):
+            self._land(t_s, "mission complete", here=False)
+        elif s is FlightState.LANDING and h.on_ground:
+            self._go(t_s, FlightState.DISARMED, "touchdown")
+        elif s is FlightState.CUT and start is FlightState.CUT:  # one tick with motors off
+            self._go(t_s, FlightState.DISARMED, "motors stopped")
+        s = self.state
+        if s in (FlightState.TAKEOFF, FlightState.MISSION):
+            ref = ReferenceSource.MISSION
+        elif s is FlightState.LANDING:
+            ref = ReferenceSource.LAND_HERE if self._land_here else ReferenceSource.MISSION
+        else:
+            ref = ReferenceSource.NONE
+        return Directive(s, s in MOTORS_ON, ref, self._hold_tilt)
+
+    @property
+    def finished(self) -> bool:
+        return self.state is FlightState.DISARMED
+
+    # -- internals ----------------------------------------------------------------------
+    def _check_failsafes(self, t_s: float, h: HealthSnapshot) -> None:
+        lim = self.limits
+        if h.imu_age_s > lim.imu_timeout_s or not h.imu_rate_ok:
+            self._fault(t_s, f"IMU stream lost (age {h.imu_age_s * 1e3:.0f} ms)")
+            self._cut(t_s, "IMU/link lost: motors stop")
+            return
+        if self.state is FlightState.ARMED:
+            return  # on the ground, idle: nothing else can go wrong that landing would fix
+        reason = None
+        if h.mocap_age_s > lim.mocap_timeout_s:
+            reason = f"MoCap lost for {h.mocap_age_s:.2f} s (> {lim.mocap_timeout_s:g} s)"
+        elif not h.estimator_ok:
+            reason = "estimator unhealthy"
+        elif any(p < lo or p > hi for p, lo, hi in
+                 zip(h.pos_w_m, lim.geofence_min_m, lim.geofence_max_m, strict=True)):
+            reason = "geofence breached at ({:.2f}, {:.2f}, {:.2f}) m".format(*h.pos_w_m)
+        elif h.body_tilt_deg > lim.max_body_tilt_deg:
+            reason = f"body tilt {h.body_tilt_deg:.1f} deg > {lim.max_body_tilt_deg:g} deg"
+        elif h.battery_v < lim.min_battery_v:
+            reason = f"battery low ({h.battery_v:.2f} V < {lim.min_battery_v:g} V)"
+        elif h.servo is ServoHealth.FAULT and not self._hold_tilt:
+            if lim.servo_fault_action == "hold":
+                self._fault(t_s, "tilt servo fault: holding the measured tilt")
+                self._hold_tilt = True
+            else:
+                reason = "tilt servo fault"
+        if reason is None:
+            return
+        if self.state is FlightState.LANDING and self._land_here:
+            return  # already doing the safe thing
+        self._fault(t_s, reason)
+        if lim.failsafe_action == "cut":
+            self._cut(t_s, f"failsafe (cut): {reason}")
+        else:
+            self._land(t_s, f"failsafe: {reason}", here=True)
+
+    def _fault(self, t_s: float, what: str) -> None:
+        self.faults.append(f"{t_s:.3f} s: {what}")
+
+    def _land(self, t_s: float, reason: str, *, here: bool) -> None:
+        self._land_here = here
+        self._go(t_s, FlightState.LANDING, reason)
+
+    def _cut(self, t_s: float, reason: str) -> None:
+        self._go(t_s, FlightState.CUT, reason)
+
+    def _go(self, t_s: float, to: FlightState, reason: str) -> None:
+        if to is not self.state:
+            self.transitions.append(Transition(t_s, self.state, to, reason))
+            self.state = to

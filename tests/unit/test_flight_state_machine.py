@@ -1,0 +1,132 @@
+"""The flight state machine: the nominal sequence, every failsafe and the operator requests."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+import pytest
+
+from groundstation.flight import (
+    FlightState,
+    FlightStateMachine,
+    HealthSnapshot,
+    ReferenceSource,
+    SafetyLimits,
+    ServoHealth,
+)
+
+LIMITS = SafetyLimits(
+    geofence_min_m=(-2.0, -2.0, -0.2), geofence_max_m=(2.0, 2.0, 2.5), max_body_tilt_deg=40.0,
+    mocap_timeout_s=1.0, imu_timeout_s=0.05, min_battery_v=14.0, failsafe_action="land",
+    servo_fault_action="hold", spin_up_s=1.0,
+)
+OK = HealthSnapshot(
+    imu_age_s=0.002, imu_rate_ok=True, mocap_age_s=0.01, estimator_ok=True,
+    servo=ServoHealth.OK, battery_v=16.0, pos_w_m=(0.0, 0.0, 1.0), body_tilt_deg=1.0,
+    on_ground=False, mission_phase="mission", motors_spinning=True,
+)
+
+
+def _flying(**limits: Any) -> FlightStateMachine:
+    sm = FlightStateMachine(replace(LIMITS, **limits))
+    assert sm.request(0.0, "arm") == (True, "armed")
+    sm.update(1.0, replace(OK, mission_phase="takeoff", on_ground=True))
+    sm.update(2.0, OK)
+    assert sm.state is FlightState.MISSION
+    return sm
+
+
+def test_that_a_nominal_flight_goes_through_every_state_in_order() -> None:
+    sm = FlightStateMachine(LIMITS)
+    assert sm.update(0.0, replace(OK, on_ground=True)).reference is ReferenceSource.NONE
+    sm.request(0.5, "arm")
+    assert sm.update(1.0, replace(OK, mission_phase="takeoff")).state is FlightState.ARMED
+    d = sm.update(1.5, replace(OK, mission_phase="takeoff"))
+    assert (d.state, d.motors_on, d.reference) == (FlightState.TAKEOFF, True,
+                                                   ReferenceSource.MISSION)
+    assert sm.update(5.0, OK).state is FlightState.MISSION
+    d = sm.update(75.0, replace(OK, mission_phase="land"))
+    assert (d.state, d.reference) == (FlightState.LANDING, ReferenceSource.MISSION)
+    d = sm.update(80.0, replace(OK, mission_phase="done", on_ground=True))
+    assert (d.state, d.motors_on) == (FlightState.DISARMED, False)
+    assert [(t.to_state, t.reason) for t in sm.transitions] == [
+        (FlightState.ARMED, "operator: arm"),
+        (FlightState.TAKEOFF, "motors at idle speed"),
+        (FlightState.MISSION, "takeoff complete"),
+        (FlightState.LANDING, "mission complete"),
+        (FlightState.DISARMED, "touchdown"),
+    ]
+    assert [t.t_s for t in sm.transitions] == [0.5, 1.5, 5.0, 75.0, 80.0]
+    assert sm.faults == [] and sm.finished
+
+
+@pytest.mark.parametrize(("change", "reason"), [
+    ({"mocap_age_s": 3.0}, "failsafe: MoCap lost for 3.00 s (> 1 s)"),
+    ({"pos_w_m": (2.5, 0.0, 1.0)}, "failsafe: geofence breached at (2.50, 0.00, 1.00) m"),
+    ({"body_tilt_deg": 55.0}, "failsafe: body tilt 55.0 deg > 40 deg"),
+    ({"battery_v": 13.2}, "failsafe: battery low (13.20 V < 14 V)"),
+    ({"estimator_ok": False}, "failsafe: estimator unhealthy"),
+])
+def test_that_each_failsafe_lands_on_the_estimate(change: dict[str, Any], reason: str) -> None:
+    sm = _flying()
+    d = sm.update(10.0, replace(OK, **change))
+    assert (d.state, d.reference, d.motors_on) == (FlightState.LANDING,
+                                                   ReferenceSource.LAND_HERE, True)
+    assert sm.transitions[-1].reason == reason
+    assert len(sm.faults) == 1
+
+
+def test_that_a_short_mocap_dropout_does_not_end_the_flight() -> None:
+    sm = _flying()
+    assert sm.update(10.0, replace(OK, mocap_age_s=0.3)).state is FlightState.MISSION
+    assert sm.faults == []
+
+
+def test_that_losing_the_imu_cuts_the_motors_and_ends_the_session() -> None:
+    sm = _flying()
+    d = sm.update(10.0, replace(OK, imu_age_s=0.2))
+    assert (d.state, d.motors_on) == (FlightState.CUT, False)
+    assert sm.update(10.002, OK).state is FlightState.DISARMED
+    assert sm.faults == ["10.000 s: IMU stream lost (age 200 ms)"]
+
+
+def test_that_the_failsafe_action_cut_stops_the_motors() -> None:
+    sm = _flying(failsafe_action="cut")
+    assert sm.update(10.0, replace(OK, pos_w_m=(0.0, 0.0, 3.0))).state is FlightState.CUT
+
+
+def test_that_a_servo_fault_holds_the_tilt_or_lands_as_configured() -> None:
+    sm = _flying(servo_fault_action="hold")
+    d = sm.update(10.0, replace(OK, servo=ServoHealth.FAULT))
+    assert (d.state, d.hold_tilt) == (FlightState.MISSION, True)
+    assert sm.faults == ["10.000 s: tilt servo fault: holding the measured tilt"]
+    sm = _flying(servo_fault_action="land")
+    assert sm.update(10.0, replace(OK, servo=ServoHealth.FAULT)).state is FlightState.LANDING
+
+
+def test_that_ctrl_c_lands_and_a_second_ctrl_c_cuts() -> None:
+    sm = _flying()
+    assert sm.request(10.0, "stop") == (True, "landing")
+    assert sm.update(10.002, OK).reference is ReferenceSource.LAND_HERE
+    assert sm.request(11.0, "stop") == (True, "motors cut")
+    assert sm.state is FlightState.CUT
+    assert [t.reason for t in sm.transitions[-2:]] == ["operator: land",
+                                                       "operator: second stop request"]
+
+
+def test_that_requests_in_the_wrong_state_are_refused() -> None:
+    sm = FlightStateMachine(LIMITS)
+    assert sm.request(0.0, "disarm") == (True, "disarmed")
+    sm = _flying()
+    assert sm.request(5.0, "arm") == (False, "cannot arm in MISSION")
+    assert sm.request(5.0, "disarm") == (False, "cannot disarm while MISSION; land first")
+    assert sm.request(5.0, "cut") == (True, "motors cut")
+    assert sm.request(5.1, "cut") == (False, "motors are not running (CUT)")
+
+
+def test_that_a_landing_failsafe_does_not_repeat_while_landing_on_the_estimate() -> None:
+    sm = _flying()
+    sm.update(10.0, replace(OK, mocap_age_s=3.0))
+    sm.update(10.002, replace(OK, mocap_age_s=3.002))
+    assert len(sm.faults) == 1 and sm.state is FlightState.LANDING
