@@ -1,0 +1,107 @@
+"""MoCap device URIs -> configs and (unstarted) PoseSource devices.
+
+Forms (options are query parameters; defaults in brackets):
+
+``natnet://SERVER[:COMMAND_PORT]?local=IP&mode=unicast|multicast&data_port=N&group=IP&body=NAME&version=X.Y&up=y|z&units=m|mm&delay_ms=F``
+    OptiTrack Motive. ``SERVER`` is the Motive PC, ``COMMAND_PORT`` [1510]; ``local`` is this
+    PC's address on the MoCap network [127.0.0.1]; ``mode`` [unicast]; ``data_port`` [1511] and
+    ``group`` [239.255.42.99] for multicast; ``body`` the rigid-body name [the first defined];
+    ``version`` a bitstream to request (unicast only) [the server's]; ``up`` the streaming up
+    axis [y]; ``units`` [m]; ``delay_ms`` the network delay added to the reported latency [0].
+    Example: ``natnet://127.0.0.1?local=127.0.0.1&mode=unicast&body=fasthex``.
+
+``vrpn://TRACKER@HOST[:PORT]?sensor=N&up=y|z&units=m|mm&latency_ms=F&stale_ms=F``
+    A VRPN tracker (Vicon Tracker, Motive, QTM). ``PORT`` [3883]; ``sensor`` [0]; ``up`` [z];
+    ``units`` [m]; ``latency_ms`` the system latency to subtract [0]; ``stale_ms`` after which
+    a silent tracker is reported missing [50]. Example: ``vrpn://Tracker0@127.0.0.1:3883``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from urllib.parse import parse_qs, urlsplit
+
+from config.schema import ConfigValueError
+from drivers.mocap.frames import FrameConfig
+from drivers.mocap.natnet_client import NatNetClient, NatNetConfig
+from drivers.mocap.vrpn_client import VrpnClient, VrpnConfig
+
+NATNET_FORM = ("natnet://SERVER[:PORT]?local=IP&mode=unicast|multicast&data_port=N&group=IP"
+               "&body=NAME&version=X.Y&up=y|z&units=m|mm&delay_ms=F")
+VRPN_FORM = "vrpn://TRACKER@HOST[:PORT]?sensor=N&up=y|z&units=m|mm&latency_ms=F&stale_ms=F"
+
+
+class MocapUriError(ValueError):
+    """A MoCap URI that does not parse; the message shows the expected form."""
+
+
+def _options(query: str, allowed: set[str], uri: str, form: str) -> dict[str, str]:
+    opts = {k: v[-1] for k, v in parse_qs(query, keep_blank_values=True).items()}
+    unknown = set(opts) - allowed
+    if unknown:
+        raise MocapUriError(f"{uri}: unknown option(s) {sorted(unknown)}; expected {form}")
+    return opts
+
+
+def _frames(opts: dict[str, str], default_up: str) -> FrameConfig:
+    return FrameConfig(up_axis=opts.get("up", default_up),  # type: ignore[arg-type]
+                       units=opts.get("units", "m"))  # type: ignore[arg-type]
+
+
+def parse_uri(uri: str) -> NatNetConfig | VrpnConfig:
+    """Parse a ``natnet://`` or ``vrpn://`` URI. Raises :class:`MocapUriError`."""
+    parts = urlsplit(uri)
+    try:
+        if parts.scheme == "natnet":
+            opts = _options(parts.query, {"local", "mode", "data_port", "group", "body",
+                                          "version", "up", "units", "delay_ms"}, uri,
+                            NATNET_FORM)
+            if not parts.hostname:
+                raise MocapUriError(f"{uri}: no server address; expected {NATNET_FORM}")
+            d = NatNetConfig()
+            return NatNetConfig(
+                server_ip=parts.hostname, local_ip=opts.get("local", d.local_ip),
+                mode=opts.get("mode", d.mode),  # type: ignore[arg-type]
+                command_port=parts.port or d.command_port,
+                data_port=int(opts.get("data_port", d.data_port)),
+                multicast_group=opts.get("group", d.multicast_group),
+                body=opts.get("body", ""), version=opts.get("version", ""),
+                network_delay_s=float(opts.get("delay_ms", 0.0)) / 1000.0,
+                frames=_frames(opts, "y"))
+        if parts.scheme == "vrpn":
+            opts = _options(parts.query, {"sensor", "up", "units", "latency_ms", "stale_ms"},
+                            uri, VRPN_FORM)
+            if not parts.username or not parts.hostname:
+                raise MocapUriError(f"{uri}: needs TRACKER@HOST; expected {VRPN_FORM}")
+            d2 = VrpnConfig()
+            return VrpnConfig(
+                tracker=parts.username, host=parts.hostname, port=parts.port or d2.port,
+                sensor=int(opts.get("sensor", 0)),
+                latency_s=float(opts.get("latency_ms", 0.0)) / 1000.0,
+                stale_after_s=float(opts.get("stale_ms", d2.stale_after_s * 1000)) / 1000.0,
+                frames=_frames(opts, "z"))
+    except (ConfigValueError, ValueError) as exc:
+        if isinstance(exc, MocapUriError):
+            raise
+        raise MocapUriError(f"{uri}: {exc}") from exc
+    raise MocapUriError(f"{uri}: unknown scheme {parts.scheme!r}; expected {NATNET_FORM} or "
+                        f"{VRPN_FORM}")
+
+
+def open_pose_source(uri: str, clock: Callable[[], int] | None = None,
+                     **overrides: object) -> NatNetClient | VrpnClient:
+    """An unstarted device for ``uri`` (call ``start()`` or use it as a context manager).
+
+    ``overrides`` replace config fields (e.g. ``body="fasthex"`` or ``frames=...``).
+    """
+    cfg = parse_uri(uri)
+    if overrides:
+        try:
+            cfg = dataclasses.replace(cfg, **overrides)  # type: ignore[arg-type]
+        except (TypeError, ConfigValueError) as exc:
+            raise MocapUriError(f"{uri}: {exc}") from exc
+    kwargs = {} if clock is None else {"clock": clock}
+    if isinstance(cfg, NatNetConfig):
+        return NatNetClient(cfg, **kwargs)
+    return VrpnClient(cfg, **kwargs)

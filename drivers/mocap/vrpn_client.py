@@ -1,0 +1,271 @@
+"""VRPN tracker client device: one sensor of one named tracker as a PoseSource.
+
+Wire protocol: see :mod:`drivers.mocap.vrpn` (VRPN 07.x over TCP, big-endian).
+
+``start()`` connects over TCP to ``host:port`` (3883), exchanges cookies (major version 07
+must match) and describes its own message types; the receive thread then maps the server's
+sender/type descriptions to names and turns every ``vrpn_Tracker Pos_Quat`` report of the
+configured tracker and sensor into a world-frame :class:`~drivers.mocap.pose.PoseSample`.
+A stream that does not decode (impossible length, bad cookie) is counted as malformed and the
+connection is re-opened; a report with a short payload is counted and dropped.
+
+VRPN carries no frame number, no latency and no validity flag. Hence:
+
+- ``frame_number`` counts reports (no dropped-frame count is possible);
+- ``t_ns`` = arrival time minus the configured ``latency_s`` (the system latency of the MoCap
+  chain, measured once in the lab) — the server's timestamp is on its own clock;
+- a body the server stops reporting (occluded) becomes a ``MISSING`` sample once its newest
+  report is older than ``stale_after_s``: the stale pose is never returned as current.
+
+Default axes are Z-up metres (Vicon Tracker, QTM); set ``frames.up_axis: y`` for Motive's
+default Y-up export.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import socket
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from config.schema import ConfigValueError
+from drivers.mocap import vrpn
+from drivers.mocap.frames import FrameConfig, FrameTransform
+from drivers.mocap.pose import (
+    NAN3,
+    NAN4,
+    MocapConnectError,
+    MocapStats,
+    PoseSample,
+    StreamMonitor,
+    TrackingStatus,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class VrpnConfig:
+    """Which VRPN tracker to read. Loadable from YAML (``config.schema``)."""
+
+    tracker: str = "Tracker0"
+    host: str = "127.0.0.1"
+    port: int = vrpn.DEFAULT_PORT
+    sensor: int = 0
+    latency_s: float = 0.0
+    stale_after_s: float = 0.05
+    connect_timeout_s: float = 3.0
+    frames: FrameConfig = field(default_factory=lambda: FrameConfig(up_axis="z"))
+
+    def __post_init__(self) -> None:
+        if not self.tracker:
+            raise ConfigValueError("tracker", "must name the tracker (e.g. Tracker0)")
+        if not 1 <= self.port <= 65535:
+            raise ConfigValueError("port", "must be a TCP port (1..65535)")
+        if self.sensor < 0:
+            raise ConfigValueError("sensor", "must be >= 0")
+        if not self.latency_s >= 0.0 or not self.stale_after_s > 0.0:
+            raise ConfigValueError("stale_after_s", "latency must be >= 0 and staleness > 0")
+
+    @property
+    def name(self) -> str:
+        return f"vrpn://{self.tracker}@{self.host}:{self.port}"
+
+
+class VrpnClient:
+    """A :class:`~drivers.mocap.pose.PoseSource` reading one sensor of a VRPN tracker."""
+
+    def __init__(self, config: VrpnConfig, clock: Callable[[], int] = time.monotonic_ns
+                 ) -> None:
+        self.config = config
+        self._clock = clock
+        self._transform = FrameTransform(config.frames)
+        self.monitor = StreamMonitor(clock)
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._sock: socket.socket | None = None
+        self._parser = vrpn.VrpnStreamParser()
+        self._senders: dict[int, str] = {}
+        self._types: dict[int, str] = {}
+        self._latest: PoseSample | None = None
+        self._reports = 0
+        self.reconnects = 0
+
+    def __enter__(self) -> VrpnClient:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def start(self) -> None:
+        """Connect and exchange cookies (raises MocapConnectError), then start receiving."""
+        self._connect()
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="vrpn-rx", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        self._thread = None
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+
+    def _connect(self) -> None:
+        cfg = self.config
+        try:
+            sock = socket.create_connection((cfg.host, cfg.port), timeout=cfg.connect_timeout_s)
+        except OSError as exc:
+            raise MocapConnectError(cfg.name, f"cannot connect: {exc}") from exc
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        try:
+            sock.sendall(vrpn.encode_cookie() + vrpn.encode_description(
+                vrpn.SystemType.TYPE_DESCRIPTION, 0, vrpn.POS_QUAT_TYPE))
+            self._parser = vrpn.VrpnStreamParser()
+            self._senders, self._types = {}, {}
+            deadline = time.monotonic() + cfg.connect_timeout_s
+            while not self._parser.peer_version:
+                left = deadline - time.monotonic()
+                if left <= 0.0:
+                    raise MocapConnectError(cfg.name, "no VRPN cookie from the server")
+                sock.settimeout(left)
+                chunk = sock.recv(4096)
+                if not chunk:
+                    raise MocapConnectError(cfg.name, "server closed the connection")
+                self._handle(self._parser.feed(chunk))
+        except vrpn.VrpnDecodeError as exc:
+            sock.close()
+            raise MocapConnectError(cfg.name, f"not a VRPN server: {exc}") from exc
+        except OSError as exc:
+            sock.close()
+            raise MocapConnectError(cfg.name, f"handshake failed: {exc}") from exc
+        except MocapConnectError:
+            sock.close()
+            raise
+        sock.settimeout(0.1)
+        self._sock = sock
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            sock = self._sock
+            if sock is None:
+                try:
+                    self._connect()
+                    self.reconnects += 1
+                except MocapConnectError as exc:
+                    log.debug("%s", exc)
+                    self._stop.wait(0.5)
+                continue
+            try:
+                chunk = sock.recv(65536)
+            except TimeoutError:
+                continue
+            except OSError:
+                chunk = b""
+            if not chunk:
+                self._reset()
+                continue
+            try:
+                msgs = self._parser.feed(chunk)
+            except vrpn.VrpnDecodeError as exc:
+                self.monitor.count_malformed()
+                log.warning("%s: stream corrupt (%s); reconnecting", self.config.name, exc)
+                self._reset()
+                continue
+            self._handle(msgs)
+
+    def _reset(self) -> None:
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+
+    def _handle(self, msgs: list[vrpn.VrpnMessage]) -> None:
+        """Apply decoded messages. Never raises for any content."""
+        for m in msgs:
+            if m.type_id in (vrpn.SystemType.SENDER_DESCRIPTION,
+                             vrpn.SystemType.TYPE_DESCRIPTION):
+                try:
+                    name = vrpn.decode_description(m.payload)
+                except vrpn.VrpnDecodeError:
+                    self.monitor.count_malformed()
+                    continue
+                table = self._senders if m.type_id == vrpn.SystemType.SENDER_DESCRIPTION \
+                    else self._types
+                with self._cond:
+                    table[m.sender_id] = name
+                continue
+            if self._types.get(m.type_id) != vrpn.POS_QUAT_TYPE:
+                continue
+            if self._senders.get(m.sender_id) != self.config.tracker:
+                continue
+            try:
+                report = vrpn.decode_pos_quat(m.payload)
+            except vrpn.VrpnDecodeError:
+                self.monitor.count_malformed()
+                continue
+            if report.sensor == self.config.sensor:
+                self._on_report(report)
+
+    def _on_report(self, report: vrpn.TrackerPose) -> None:
+        rx = self._clock()
+        lat = self.config.latency_s
+        t_ns = rx - round(lat * 1e9)
+        self._reports += 1
+        self.monitor.on_frame(None, rx, lat)
+        status = TrackingStatus.OK
+        try:
+            pos, q = self._transform.to_world(report.pos, report.q_xyzw)
+        except ValueError:
+            status = TrackingStatus.INVALID
+        if status is TrackingStatus.OK and not all(math.isfinite(c) for c in pos):
+            status = TrackingStatus.INVALID
+        if status is not TrackingStatus.OK:
+            pos, q = NAN3, NAN4
+        sample = PoseSample(t_ns, rx, self._reports, report.sensor, self.config.tracker,
+                            status, pos, q, lat, math.nan)
+        self.monitor.on_sample(sample)
+        with self._cond:
+            self._latest = sample
+            self._cond.notify_all()
+
+    # ------------------------------------------------------------------ PoseSource
+
+    def latest(self) -> PoseSample | None:
+        s = self._latest
+        if s is None or not s.valid:
+            return s
+        now = self._clock()
+        if (now - s.rx_t_ns) * 1e-9 > self.config.stale_after_s:
+            return PoseSample(s.t_ns, s.rx_t_ns, s.frame_number, s.body_id, s.body_name,
+                              TrackingStatus.MISSING, NAN3, NAN4, s.latency_s, math.nan)
+        return s
+
+    def stats(self) -> MocapStats:
+        return self.monitor.snapshot()
+
+    def wait_frames(self, count: int, timeout_s: float) -> bool:
+        """Block until ``count`` more reports of the configured sensor arrived."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            target = self._reports + count
+            while self._reports < target:
+                left = deadline - time.monotonic()
+                if left <= 0.0:
+                    return False
+                self._cond.wait(left)
+        return True
+
+    def trackers(self) -> list[str]:
+        """Sender (tracker) names the server has announced."""
+        with self._cond:
+            return sorted(set(self._senders.values()))
+
+
+__all__ = ["VrpnClient", "VrpnConfig"]

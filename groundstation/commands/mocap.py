@@ -1,0 +1,133 @@
+"""``fasthex mocap list|watch URI``: what a lab checks before every flight.
+
+- ``list``: the rigid bodies the server defines (NatNet: name, id, marker count) or the
+  trackers it announces (VRPN), with the server's name, version and stream rate.
+- ``watch [--body NAME]``: one live terminal line with the world-frame pose (m, deg), the
+  measured rate, the latency, the age and the dropped/invalid counts. Ctrl-C ends it.
+
+URIs (see :mod:`drivers.mocap.uri`)::
+
+    natnet://127.0.0.1?local=127.0.0.1&mode=unicast           Motive, unicast on this PC
+    natnet://192.168.1.10?local=192.168.1.20&mode=multicast   Motive on the lab network
+    vrpn://Tracker0@127.0.0.1:3883                             VRPN tracker (Vicon, QTM)
+
+Try it against the emulated vehicle: ``fasthex emulate`` prints the MoCap URI to use.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from drivers.mocap.natnet_client import NatNetClient
+    from drivers.mocap.pose import MocapStats, PoseSample
+    from drivers.mocap.vrpn_client import VrpnClient
+
+NAME = "mocap"
+HELP = "list MoCap rigid bodies or watch one live (NatNet or VRPN URI)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="mocap_action", metavar="ACTION", required=True)
+    p_list = sub.add_parser("list", help="list the rigid bodies / trackers of a MoCap server")
+    p_list.add_argument("uri", metavar="URI", help="natnet://SERVER?... or vrpn://TRACKER@HOST")
+    p_watch = sub.add_parser("watch", help="show the live pose, rate and latency of one body")
+    p_watch.add_argument("uri", metavar="URI", help="natnet://SERVER?... or vrpn://TRACKER@HOST")
+    p_watch.add_argument("--body", default="", help="rigid-body name (NatNet); default: "
+                         "the URI's body option, else the first defined")
+    p_watch.add_argument("--frames", type=int, default=0,
+                         help="stop after this many frames (0: until Ctrl-C)")
+    p_watch.add_argument("--interval", type=float, default=0.2,
+                         help="seconds between status lines (default 0.2)")
+
+
+def _open(uri: str, body: str = "") -> NatNetClient | VrpnClient:
+    from drivers.mocap.pose import MocapError
+    from drivers.mocap.uri import MocapUriError, open_pose_source
+    from groundstation.cli import UserError
+
+    try:
+        dev = open_pose_source(uri, body=body) if body and uri.startswith("natnet") \
+            else open_pose_source(uri)
+        dev.start()
+    except (MocapUriError, MocapError) as exc:
+        raise UserError(str(exc)) from exc
+    return dev
+
+
+def _list(uri: str) -> int:
+    from drivers.mocap.natnet_client import NatNetClient
+
+    dev = _open(uri)
+    try:
+        if isinstance(dev, NatNetClient):
+            info = dev.server_info
+            assert info is not None and dev.models is not None
+            dev.wait_frames(50, 2.0)
+            st = dev.stats()
+            print(f"{info.app_name} {'.'.join(map(str, info.app_version))}, NatNet "
+                  f"{'.'.join(map(str, dev.version or ()))}, "
+                  f"{'multicast' if info.is_multicast else 'unicast'}, {st.rate_hz:.0f} Hz")
+            for rb in dev.models.rigid_bodies:
+                print(f"  {rb.body_id:4d}  {rb.name:24s} {len(rb.marker_positions)} markers")
+            if not dev.models.rigid_bodies:
+                print("  (no rigid bodies defined)")
+        else:
+            dev.wait_frames(20, 1.0)
+            st = dev.stats()
+            for name in dev.trackers():
+                print(f"  {name}  ({st.rate_hz:.0f} Hz on the configured sensor)")
+    finally:
+        dev.close()
+    return 0
+
+
+def format_status(sample: PoseSample | None, stats: MocapStats) -> str:
+    """One status line (also used by tests)."""
+    head = f"{stats.rate_hz:6.1f} Hz  lat {stats.latency_s * 1e3:5.1f} ms  " \
+        f"age {min(stats.age_s, 99.0) * 1e3:6.1f} ms  drop {stats.frames_dropped} " \
+        f"inv {stats.invalid_samples} bad {stats.malformed_packets}"
+    if sample is None:
+        return f"waiting for frames...  {head}"
+    if not sample.valid:
+        return f"#{sample.frame_number} {sample.body_name}: {sample.status.value.upper()}  " \
+            f"{head}"
+    w, x, y, z = sample.q_wb
+    roll = math.degrees(math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)))
+    pitch = math.degrees(math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x)))))
+    yaw = math.degrees(math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
+    p = sample.pos_w_m
+    return (f"#{sample.frame_number} {sample.body_name}: p [{p[0]:+7.3f} {p[1]:+7.3f} "
+            f"{p[2]:+7.3f}] m  rpy [{roll:+6.1f} {pitch:+6.1f} {yaw:+7.1f}] deg  {head}")
+
+
+def _watch(args: argparse.Namespace) -> int:
+    dev = _open(args.uri, args.body)
+    tty = sys.stdout.isatty()
+    try:
+        while True:
+            dev.wait_frames(1, args.interval)
+            line = format_status(dev.latest(), dev.stats())
+            if tty:
+                sys.stdout.write("\r\x1b[K" + line)
+            else:
+                sys.stdout.write(line + "\n")
+            sys.stdout.flush()
+            if args.frames and dev.stats().frames_received >= args.frames:
+                break
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if tty:
+            sys.stdout.write("\n")
+        dev.close()
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.mocap_action == "list":
+        return _list(args.uri)
+    return _watch(args)

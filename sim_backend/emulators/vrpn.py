@@ -1,0 +1,282 @@
+"""Emulated VRPN tracker server (as exported by Vicon Tracker, Motive or QTM).
+
+Speaks VRPN 07.38 with the codec of :mod:`drivers.mocap.vrpn`: it listens on TCP ``port``
+(3883) for clients that connect directly, and on UDP ``port`` for connection requests
+("lobs": ``"<ip> <port>"``), after which it connects back to the client over TCP, as the
+mainline VRPN client expects. After the cookie exchange it describes its sender (the tracker
+name, e.g. ``Tracker0``) and message types, then streams ``vrpn_Tracker Pos_Quat`` reports of
+one sensor at ``rate_hz`` (server-clock timestamps, epoch seconds), answers
+``vrpn_Base ping_message`` with a pong, and ignores everything else a client says.
+
+The vehicle's true pose is converted into the server's frame (Z-up, metres by default, like
+Vicon Tracker) with :class:`drivers.mocap.frames.FrameTransform`. Noise, a send latency and
+occlusion dropouts (no report at all while occluded, as VRPN has no validity flag) are
+configurable. Vehicle calls are made under the shared ``lock``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import selectors
+import socket
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from config.schema import spec
+from drivers.mocap import vrpn
+from drivers.mocap.frames import FrameConfig, FrameTransform, quat_from_axis_angle, quat_mul
+from sim_backend.vehicle import EmulatedVehicle
+
+log = logging.getLogger(__name__)
+
+_SENDER_ID = 0
+_TYPE_POS_QUAT = 0
+_TYPE_PONG = 1
+
+
+@dataclass(frozen=True)
+class VrpnEmulatorConfig:
+    """The emulated VRPN tracker server. Loadable from YAML (``config.schema``)."""
+
+    host: str = "127.0.0.1"
+    port: int = spec(vrpn.DEFAULT_PORT, ge=0, le=65535, doc="TCP and UDP; 0 picks a free one")
+    tracker_name: str = "Tracker0"
+    sensor: int = spec(0, ge=0)
+    rate_hz: float = spec(100.0, ge=100.0, le=360.0)
+    pos_noise_m: float = spec(0.0, ge=0.0)
+    rot_noise_rad: float = spec(0.0, ge=0.0)
+    latency_s: float = spec(0.0, ge=0.0, le=0.5)
+    occlusion_probability: float = spec(0.0, ge=0.0, le=1.0)
+    occlusion_frames: int = spec(10, ge=1)
+    seed: int = 0
+    frames: FrameConfig = field(default_factory=lambda: FrameConfig(up_axis="z"))
+
+
+class _Conn:
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock = sock
+        self.parser = vrpn.VrpnStreamParser(expect_cookie=True)
+        self.ready = False
+        self.types: dict[int, str] = {}
+        self.send_lock = threading.Lock()
+
+
+class VrpnServer:
+    """Emulated VRPN tracker: one tracker name, one sensor following the vehicle."""
+
+    def __init__(self, vehicle: EmulatedVehicle, config: VrpnEmulatorConfig | None = None,
+                 lock: threading.Lock | None = None,
+                 wall_clock: Callable[[], float] = time.time) -> None:
+        self.config = cfg = config or VrpnEmulatorConfig()
+        self._vehicle = vehicle
+        self._lock = lock or threading.Lock()
+        self._wall = wall_clock
+        self._transform = FrameTransform(cfg.frames)
+        self._rng = np.random.default_rng(cfg.seed)
+        self._tcp: socket.socket | None = None
+        self._udp: socket.socket | None = None
+        self._conns: list[_Conn] = []
+        self._conns_lock = threading.Lock()
+        self._sel = selectors.DefaultSelector()
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._occluded_left = 0
+        self.reports_sent = 0
+        self.occluded_reports = 0
+
+    def __enter__(self) -> VrpnServer:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def port(self) -> int:
+        assert self._tcp is not None, "server not started"
+        return int(self._tcp.getsockname()[1])
+
+    def start(self) -> None:
+        cfg = self.config
+        self._tcp = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self._tcp.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self._tcp.bind((cfg.host, cfg.port))
+        self._tcp.listen(4)
+        self._udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._udp.bind((cfg.host, self.port))
+        for s in (self._tcp, self._udp):
+            s.setblocking(False)
+            self._sel.register(s, selectors.EVENT_READ)
+        self._stop.clear()
+        self._threads = [threading.Thread(target=self._serve, name="vrpn-emu-io", daemon=True),
+                         threading.Thread(target=self._stream, name="vrpn-emu-stream",
+                                          daemon=True)]
+        for t in self._threads:
+            t.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=5.0)
+        self._threads = []
+        with self._conns_lock:
+            conns, self._conns = self._conns, []
+        for c in conns:
+            c.sock.close()
+        for s in (self._tcp, self._udp):
+            if s is not None:
+                s.close()
+        self._tcp = self._udp = None
+        self._sel.close()
+
+    @property
+    def client_count(self) -> int:
+        with self._conns_lock:
+            return sum(1 for c in self._conns if c.ready)
+
+    # ------------------------------------------------------------------ connections
+
+    def _add(self, sock: socket.socket) -> None:
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        sock.settimeout(2.0)  # bounds a blocked sendall; reads only follow select()
+        conn = _Conn(sock)
+        self._send(conn, vrpn.encode_cookie())
+        with self._conns_lock:
+            self._conns.append(conn)
+        self._sel.register(sock, selectors.EVENT_READ, conn)
+
+    def _drop(self, conn: _Conn) -> None:
+        with self._conns_lock:
+            if conn in self._conns:
+                self._conns.remove(conn)
+        with contextlib.suppress(KeyError, ValueError):
+            self._sel.unregister(conn.sock)
+        conn.sock.close()
+
+    def _send(self, conn: _Conn, data: bytes) -> bool:
+        try:
+            with conn.send_lock:
+                conn.sock.sendall(data)
+            return True
+        except OSError:
+            return False
+
+    def _serve(self) -> None:
+        while not self._stop.is_set():
+            for key, _ in self._sel.select(timeout=0.1):
+                if key.fileobj is self._tcp:
+                    with contextlib.suppress(BlockingIOError):
+                        sock, _ = self._tcp.accept()
+                        self._add(sock)
+                elif key.fileobj is self._udp:
+                    self._on_lob()
+                else:
+                    self._on_readable(key.data)
+
+    def _on_lob(self) -> None:
+        assert self._udp is not None
+        try:
+            data, _ = self._udp.recvfrom(512)
+            ip, port = vrpn.decode_lob(data)
+        except (OSError, vrpn.VrpnDecodeError):
+            return
+        with self._conns_lock:
+            if any(c.sock.getpeername() == (ip, port) for c in self._conns):
+                return  # clients repeat their request until the call-back arrives
+        try:
+            sock = socket.create_connection((ip, port), timeout=2.0)
+        except OSError as exc:
+            log.warning("vrpn emulator: cannot call back %s:%d: %s", ip, port, exc)
+            return
+        self._add(sock)
+
+    def _on_readable(self, conn: _Conn) -> None:
+        try:
+            chunk = conn.sock.recv(65536)
+        except (BlockingIOError, TimeoutError):
+            return
+        except OSError:
+            chunk = b""
+        if not chunk:
+            self._drop(conn)
+            return
+        try:
+            msgs = conn.parser.feed(chunk)
+        except vrpn.VrpnDecodeError as exc:
+            log.warning("vrpn emulator: dropping client: %s", exc)
+            self._drop(conn)
+            return
+        if not conn.ready and conn.parser.peer_version:
+            self._describe(conn)
+        for m in msgs:
+            if m.type_id == vrpn.SystemType.TYPE_DESCRIPTION:
+                with contextlib.suppress(vrpn.VrpnDecodeError):
+                    conn.types[m.sender_id] = vrpn.decode_description(m.payload)
+            elif conn.types.get(m.type_id) == vrpn.PING_TYPE:
+                self._send(conn, vrpn.encode_message(_SENDER_ID, _TYPE_PONG, b"", self._wall()))
+
+    def _describe(self, conn: _Conn) -> None:
+        t = self._wall()
+        self._send(conn, b"".join((
+            vrpn.encode_description(vrpn.SystemType.SENDER_DESCRIPTION, _SENDER_ID,
+                                    self.config.tracker_name, t),
+            vrpn.encode_description(vrpn.SystemType.TYPE_DESCRIPTION, _TYPE_POS_QUAT,
+                                    vrpn.POS_QUAT_TYPE, t),
+            vrpn.encode_description(vrpn.SystemType.TYPE_DESCRIPTION, _TYPE_PONG,
+                                    vrpn.PONG_TYPE, t))))
+        conn.ready = True
+
+    # ------------------------------------------------------------------ streaming
+
+    def _report(self, t_s: float) -> bytes | None:
+        cfg = self.config
+        with self._lock:
+            pose = self._vehicle.true_pose()
+        if self._occluded_left == 0 and cfg.occlusion_probability > 0.0 \
+                and self._rng.random() < cfg.occlusion_probability:
+            self._occluded_left = cfg.occlusion_frames
+        if self._occluded_left > 0:
+            self._occluded_left -= 1
+            self.occluded_reports += 1
+            return None
+        pos, q = pose.pos_w_m, pose.q_wb
+        if cfg.pos_noise_m > 0.0:
+            n = self._rng.normal(0.0, cfg.pos_noise_m, 3)
+            pos = (pos[0] + float(n[0]), pos[1] + float(n[1]), pos[2] + float(n[2]))
+        if cfg.rot_noise_rad > 0.0:
+            r = self._rng.normal(0.0, cfg.rot_noise_rad, 3)
+            q = quat_mul(q, quat_from_axis_angle((float(r[0]), float(r[1]), float(r[2])),
+                                                 float(np.linalg.norm(r))))
+        p_m, q_m = self._transform.to_mocap(pos, q)
+        return vrpn.encode_message(_SENDER_ID, _TYPE_POS_QUAT,
+                                   vrpn.encode_pos_quat(vrpn.TrackerPose(cfg.sensor, p_m, q_m)),
+                                   t_s)
+
+    def _stream(self) -> None:
+        period = 1.0 / self.config.rate_hz
+        pending: deque[tuple[float, bytes]] = deque()
+        next_capture = self._wall()
+        while not self._stop.is_set():
+            now = self._wall()
+            if now - next_capture > 0.25:
+                next_capture = now
+            while next_capture <= now:
+                msg = self._report(now)
+                if msg is not None:
+                    pending.append((now + self.config.latency_s, msg))
+                next_capture += period
+            while pending and pending[0][0] <= now:
+                msg = pending.popleft()[1]
+                with self._conns_lock:
+                    targets = [c for c in self._conns if c.ready]
+                for c in targets:
+                    if self._send(c, msg):
+                        self.reports_sent += 1
+            wake = min(next_capture, pending[0][0]) if pending else next_capture
+            self._stop.wait(max(0.0, min(wake - self._wall(), 0.05)))
