@@ -1,0 +1,98 @@
+"""Telemetry out of the 500 Hz loop without slowing it: a shared-memory ring of fixed-size rows,
+written by the loop and drained by a separate, lower-priority process.
+
+The loop's cost per tick is one numpy row copy and one counter store (a few microseconds, no
+allocation, no lock, no system call). The ring never blocks the writer: when the reader falls a
+whole ring behind, new rows are dropped and counted (the flight record then shows the gap),
+which never happens at the reader's normal pace of one drain per 20-100 ms.
+
+Layout of the shared block: a header of four int64 (write sequence, read sequence, dropped rows,
+number of columns) followed by ``capacity x n_cols`` float64. Single writer, single reader; the
+writer stores the row first and the write sequence second, and the reader reads the sequence
+before the rows below it. x86-64 keeps stores in program order, so the reader never sees a
+half-written row there; on weakly ordered CPUs a row could in principle be read stale, which
+telemetry tolerates (nothing read back from the ring feeds the control loop).
+
+Low-rate events (state transitions, faults) travel in a separate bounded queue.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from multiprocessing import resource_tracker, shared_memory
+
+import numpy as np
+import numpy.typing as npt
+
+_HEADER = 4  # int64 slots: write_seq, read_seq, dropped, n_cols
+
+
+class TelemetryRing:
+    """Single-writer / single-reader ring of float64 rows in shared memory."""
+
+    def __init__(self, n_cols: int, capacity: int = 1 << 14, *, name: str | None = None) -> None:
+        """Create a ring (``name=None``) or attach to an existing one by ``name``."""
+        self._owner = name is None
+        size = 8 * _HEADER + 8 * n_cols * capacity
+        if self._owner:
+            self._shm = shared_memory.SharedMemory(create=True, size=size)
+        else:
+            self._shm = shared_memory.SharedMemory(name=name)
+            # Python < 3.13 registers attached blocks with the resource tracker, which would
+            # unlink the writer's block when this reader exits: only the creator owns it.
+            with contextlib.suppress(Exception):
+                resource_tracker.unregister(self._shm._name, "shared_memory")  # type: ignore[attr-defined]
+        self._header = np.ndarray((_HEADER,), dtype=np.int64, buffer=self._shm.buf, offset=0)
+        if self._owner:
+            self._header[:] = (0, 0, 0, n_cols)
+        elif int(self._header[3]) != n_cols:
+            raise ValueError(f"ring {name} has {int(self._header[3])} columns, not {n_cols}")
+        self._rows = np.ndarray((capacity, n_cols), dtype=np.float64, buffer=self._shm.buf,
+                                offset=8 * _HEADER)
+        self.capacity = capacity
+        self.n_cols = n_cols
+
+    @property
+    def name(self) -> str:
+        return self._shm.name
+
+    # -- writer (the loop) -------------------------------------------------------------------
+    def push(self, row: npt.NDArray[np.float64]) -> bool:
+        """Append one row; ``False`` (and counted) if the reader is a whole ring behind."""
+        header = self._header
+        seq = int(header[0])
+        if seq - int(header[1]) >= self.capacity:
+            header[2] += 1
+            return False
+        self._rows[seq % self.capacity] = row
+        header[0] = seq + 1
+        return True
+
+    @property
+    def dropped(self) -> int:
+        return int(self._header[2])
+
+    @property
+    def written(self) -> int:
+        return int(self._header[0])
+
+    # -- reader (the telemetry process) ------------------------------------------------------
+    def drain(self) -> npt.NDArray[np.float64]:
+        """Copy out every row written since the last drain (shape ``(k, n_cols)``)."""
+        end = int(self._header[0])
+        start = int(self._header[1])
+        if end == start:
+            return np.empty((0, self.n_cols))
+        idx = np.arange(start, end) % self.capacity
+        rows = self._rows[idx].copy()
+        self._header[1] = end
+        return rows
+
+    def close(self) -> None:
+        """Detach; the creating side also frees the block."""
+        # Views into the buffer must go before the mapping can close.
+        del self._header, self._rows
+        self._shm.close()
+        if self._owner:
+            with contextlib.suppress(FileNotFoundError):
+                self._shm.unlink()

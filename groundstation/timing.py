@@ -1,0 +1,125 @@
+"""Loop timing: per-tick period, jitter, compute time and deadline misses, plus the scheduler
+settings a lab would use for a 500 Hz Python loop.
+
+:class:`LoopTimer` stores every tick's numbers in preallocated arrays (no allocation in the tick)
+and summarises them at the end. :func:`apply_realtime_settings` tries CPU affinity, SCHED_FIFO
+and a frozen/disabled garbage collector, and reports which took effect (unprivileged users and
+containers often refuse SCHED_FIFO).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import gc
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class TimingSummary:
+    ticks: int
+    deadline_misses: int
+    period_p50_ms: float
+    period_p99_ms: float
+    jitter_p50_ms: float
+    jitter_p99_ms: float
+    compute_p50_ms: float
+    compute_p99_ms: float
+    compute_max_ms: float
+
+    @property
+    def miss_fraction(self) -> float:
+        return self.deadline_misses / self.ticks if self.ticks else 0.0
+
+
+class LoopTimer:
+    """Records tick start/end times (ns, on the loop's clock) into preallocated arrays."""
+
+    def __init__(self, nominal_period_s: float, capacity: int = 500 * 3600) -> None:
+        self.nominal_ns = round(nominal_period_s * 1e9)
+        self._start = np.zeros(capacity, dtype=np.int64)
+        self._compute = np.zeros(capacity, dtype=np.int64)
+        self._n = 0
+        self._capacity = capacity
+        self.deadline_misses = 0
+
+    def record(self, start_ns: int, end_ns: int) -> None:
+        """One tick: when its input arrived (start) and when its output was written (end)."""
+        compute = end_ns - start_ns
+        if compute > self.nominal_ns:
+            self.deadline_misses += 1
+        if self._n < self._capacity:
+            self._start[self._n] = start_ns
+            self._compute[self._n] = compute
+        self._n += 1
+
+    @property
+    def ticks(self) -> int:
+        return self._n
+
+    def last_compute_s(self) -> float:
+        i = min(self._n, self._capacity) - 1
+        return float(self._compute[i]) * 1e-9 if i >= 0 else 0.0
+
+    def summary(self) -> TimingSummary:
+        n = min(self._n, self._capacity)
+        if n < 2:
+            return TimingSummary(self._n, self.deadline_misses, *([0.0] * 7))
+        period = np.diff(self._start[:n]) * 1e-6
+        jitter = np.abs(period - self.nominal_ns * 1e-6)
+        compute = self._compute[:n] * 1e-6
+        return TimingSummary(
+            ticks=self._n,
+            deadline_misses=self.deadline_misses,
+            period_p50_ms=float(np.percentile(period, 50)),
+            period_p99_ms=float(np.percentile(period, 99)),
+            jitter_p50_ms=float(np.percentile(jitter, 50)),
+            jitter_p99_ms=float(np.percentile(jitter, 99)),
+            compute_p50_ms=float(np.percentile(compute, 50)),
+            compute_p99_ms=float(np.percentile(compute, 99)),
+            compute_max_ms=float(np.max(compute)),
+        )
+
+
+def apply_realtime_settings(*, cpu: int | None = None, fifo_priority: int = 50,
+                            freeze_gc: bool = True) -> dict[str, str]:
+    """Try the scheduler settings of a real-time loop; returns ``{setting: outcome}``.
+
+    Nothing here raises: a refused setting is reported, and the flight goes on without it.
+    """
+    report: dict[str, str] = {}
+    if hasattr(os, "sched_setaffinity"):
+        try:
+            cpus = sorted(os.sched_getaffinity(0))
+            target = cpu if cpu is not None else cpus[-1]
+            os.sched_setaffinity(0, {target})
+            report["affinity"] = f"pinned to CPU {target}"
+        except OSError as exc:
+            report["affinity"] = f"refused ({exc.strerror})"
+    else:
+        report["affinity"] = "not supported on this OS"
+    if hasattr(os, "sched_setscheduler") and fifo_priority > 0:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo_priority))
+            report["scheduler"] = f"SCHED_FIFO priority {fifo_priority}"
+        except OSError as exc:
+            report["scheduler"] = f"SCHED_FIFO refused ({exc.strerror}); SCHED_OTHER"
+    else:
+        report["scheduler"] = "SCHED_OTHER"
+    if freeze_gc:
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        report["gc"] = "collected, frozen and disabled for the flight"
+    return report
+
+
+def restore_default_settings() -> None:
+    """Undo :func:`apply_realtime_settings` (GC back on; scheduler back to SCHED_OTHER)."""
+    gc.enable()
+    gc.unfreeze()
+    if hasattr(os, "sched_setscheduler"):
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
