@@ -1,7 +1,8 @@
 """Estimator configuration: noise densities, gates, health limits; every number with its range.
 
-Noise densities follow the usual continuous-time convention: a white noise of density
-``sigma`` (unit/sqrt(Hz)) sampled at rate ``f`` has a per-sample standard deviation of
+Defaults: the paper's sensor class (ADXRS620 gyro, MXR9500M-class accelerometer, sub-mm MoCap)
+with some margin. Noise densities follow the usual continuous-time convention: a white noise of
+density ``sigma`` (unit/sqrt(Hz)) sampled at rate ``f`` has a per-sample standard deviation of
 ``sigma * sqrt(f)``, and integrates to a variance ``sigma**2 * dt`` over ``dt`` seconds.
 """
 
@@ -19,9 +20,9 @@ class EstimatorConfig:
     """Error-state UKF tuning and health limits (schema ``estimator``)."""
 
     # -- IMU and bias model -------------------------------------------------------------------
-    gyro_noise_rad_s_sqrt_hz: float = spec(2e-3, gt=0.0, le=1.0,
+    gyro_noise_rad_s_sqrt_hz: float = spec(1e-3, gt=0.0, le=1.0,
                                            doc="gyro white-noise density")
-    accel_noise_m_s2_sqrt_hz: float = spec(2e-2, gt=0.0, le=10.0,
+    accel_noise_m_s2_sqrt_hz: float = spec(3e-3, gt=0.0, le=10.0,
                                            doc="accelerometer white-noise density")
     gyro_bias_walk_rad_s2_sqrt_hz: float = spec(1e-4, gt=0.0, le=1.0,
                                                 doc="gyro-bias random-walk density")
@@ -31,8 +32,8 @@ class EstimatorConfig:
         "trapezoid", doc="input over (t_prev, t]: mean of both samples, or the newest one")
     gravity_m_s2: float = spec(9.81, gt=9.0, lt=10.5, doc="gravity; world z is up")
     # -- MoCap ---------------------------------------------------------------------------------
-    mocap_pos_sigma_m: float = spec(1e-3, gt=0.0, le=1.0, doc="MoCap position noise (1 sigma)")
-    mocap_att_sigma_deg: float = spec(0.2, gt=0.0, le=30.0, doc="MoCap attitude noise (1 sigma)")
+    mocap_pos_sigma_m: float = spec(5e-4, gt=0.0, le=1.0, doc="MoCap position noise (1 sigma)")
+    mocap_att_sigma_deg: float = spec(0.15, gt=0.0, le=30.0, doc="MoCap attitude noise (1 sigma)")
     mocap_stale_s: float = spec(0.05, gt=0.0, le=10.0,
                                 doc="no accepted pose for this long -> MOCAP_STALE")
     latency_compensation: bool = spec(True, doc="fuse poses at their capture time (replay)")

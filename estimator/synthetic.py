@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from .quaternion import quat_exp, quat_from_euler_zyx, quat_mul, quat_to_rot
+from .quaternion import angle_between, quat_exp, quat_from_euler_zyx, quat_mul, quat_to_rot
 from .ukf import PoseVerdict, Ukf
 
 FloatArray = npt.NDArray[np.float64]
@@ -154,6 +154,14 @@ class MocapModel:
     outliers: tuple[tuple[float, tuple[float, float, float]], ...] = ()  # (t, position jump)
 
 
+# The paper's sensor class (ADXRS620 gyro, MXR9500M-class accelerometer, sub-mm MoCap) with
+# biases of a few sigma of a typical turn-on spread, and a 5-15 ms MoCap latency.
+PAPER_IMU = ImuModel(gyro_noise_rad_s_sqrt_hz=8.7e-4, accel_noise_m_s2_sqrt_hz=2e-3,
+                     gyro_bias_rad_s=(0.005, -0.008, 0.006), accel_bias_m_s2=(0.05, -0.04, 0.06))
+PAPER_MOCAP = MocapModel(pos_sigma_m=5e-4, att_sigma_deg=0.115, latency_min_s=0.005,
+                         latency_max_s=0.015)
+
+
 @dataclass(frozen=True)
 class ExternalForce:
     """A constant world-frame pull plus an Ornstein-Uhlenbeck gust per axis."""
@@ -187,7 +195,7 @@ def make_scenario(traj: Trajectory, duration_s: float, imu: ImuModel, mocap: Moc
                   seed: int, force: ExternalForce | None = None, mass_kg: float = 3.1,
                   gravity_m_s2: float = 9.81, t0_s: float = 0.0) -> Scenario:
     rng = np.random.default_rng(seed)
-    n = int(round(duration_s * imu.rate_hz))
+    n = round(duration_s * imu.rate_hz)
     t = t0_s + np.arange(1, n + 1) / imu.rate_hz
     truth = sample_truth(traj, t, gravity_m_s2)
     root_rate = math.sqrt(imu.rate_hz)
@@ -217,8 +225,8 @@ def make_scenario(traj: Trajectory, duration_s: float, imu: ImuModel, mocap: Moc
 
 def _mocap_frames(traj: Trajectory, t0_s: float, duration_s: float, mocap: MocapModel,
                   rng: np.random.Generator, gravity_m_s2: float) -> list[MocapFrame]:
-    n = int(math.floor(duration_s * mocap.rate_hz))
-    t_cap = t0_s + (np.arange(n) + 0.5) / mocap.rate_hz
+    n = math.floor(duration_s * mocap.rate_hz)
+    t_cap = t0_s + (np.arange(n, dtype=np.float64) + 0.5) / mocap.rate_hz
     truth = sample_truth(traj, t_cap, gravity_m_s2)
     pos = truth.pos_w_m + rng.normal(0.0, mocap.pos_sigma_m, (n, 3))
     noise = quat_exp(rng.normal(0.0, math.radians(mocap.att_sigma_deg), (n, 3)))
@@ -235,7 +243,7 @@ def _mocap_frames(traj: Trajectory, t0_s: float, duration_s: float, mocap: Mocap
                 p += np.asarray(jump)
         frames.append(MocapFrame(tc, tc + float(latency[k]), p, q[k]))
     # a stream delivers in order: a frame never overtakes the previous one
-    arrival = np.maximum.accumulate([f.arrival_t_s for f in frames]) if frames else []
+    arrival = np.maximum.accumulate(np.array([f.arrival_t_s for f in frames], dtype=np.float64))
     return [MocapFrame(f.capture_t_s, float(a), f.pos_w_m, f.q_wb)
             for f, a in zip(frames, arrival, strict=True)]
 
@@ -254,6 +262,15 @@ class RunLog:
     force_ext_w_n: FloatArray
     initialized: npt.NDArray[np.bool_]
     verdicts: list[tuple[float, PoseVerdict]]
+
+
+def rmse(estimate: FloatArray, truth: FloatArray) -> float:
+    """Root mean square of the Euclidean error norm over rows."""
+    return float(np.sqrt(np.mean(np.sum((estimate - truth) ** 2, axis=-1))))
+
+
+def attitude_errors_rad(q_est: FloatArray, q_true: FloatArray) -> FloatArray:
+    return angle_between(q_est, q_true)
 
 
 def run(est: Ukf, sc: Scenario, feed_force: bool = False,

@@ -442,16 +442,16 @@ class Ukf:
             P = self._initial_covariance()
         x[POS] = pos
         x[ATT] = 0.0
-        reset = [POS, ATT, VEL] if zero_velocity else [POS, ATT]
         if zero_velocity:
             x[VEL] = 0.0
-        for block in reset:
+        # the velocity dead-reckoned while poses were refused is suspect too: decorrelate it
+        vel_var = np.maximum(np.diag(P)[VEL], cfg.init_vel_sigma_m_s ** 2)
+        for block in (POS, ATT, VEL):
             P[block, :] = 0.0
             P[:, block] = 0.0
         P[POS, POS] = cfg.init_pos_sigma_m ** 2 * np.eye(3)
         P[ATT, ATT] = math.radians(cfg.init_att_sigma_deg) ** 2 * np.eye(3)
-        if zero_velocity:
-            P[VEL, VEL] = cfg.init_vel_sigma_m_s ** 2 * np.eye(3)
+        P[VEL, VEL] = np.diag(cfg.init_vel_sigma_m_s ** 2 if zero_velocity else vel_var)
         self._x, self._P, self._q_ref = x, P, q_m.copy()
         self._nonfinite = False
         self._last_pose_t_s = self._t_s
