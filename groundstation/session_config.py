@@ -40,10 +40,9 @@ class EmulatedBackend:
     kind: Literal["emulated"]
     clock: Literal["realtime", "lockstep"] = spec("lockstep")
     seed: int = spec(1, ge=0)
-    disturbances: str = spec("paper-calibrated", doc="disturbance preset name or file")
-    imu_rate_hz: float = spec(500.0, ge=100.0, le=2000.0)
-    mocap_rate_hz: float = spec(100.0, ge=10.0, le=360.0)
-    mocap_latency_s: float = spec(0.008, ge=0.0, le=0.1)
+    disturbances: str = spec("paper-calibrated", doc="simulator preset (disturbances, sensor "
+                             "noise, MoCap rate and latency): name or file")
+    imu_rate_hz: float = spec(500.0, ge=100.0, le=2000.0, doc="IMU stream rate requested")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -39,11 +39,11 @@ def test_that_every_shipped_session_loads() -> None:
      "geofence_min_m", "safety.geofence_min_m[1]: must be below geofence_max_m[1] (2.5 m)"),
     ("failsafe_action: land", "failsafe_action: hover", "failsafe_action",
      "safety.failsafe_action: expected one of 'land', 'cut'; got 'hover'"),
-    ("mocap_rate_hz: 100.0", "mocap_rate_hz: 1000.0", "mocap_rate_hz",
-     "backend.mocap_rate_hz: expected a number >= 10 and <= 360, got 1000.0"),
+    ("imu_rate_hz: 500.0", "imu_rate_hz: 5000.0", "imu_rate_hz",
+     "backend.imu_rate_hz: expected a number >= 100 and <= 2000, got 5000.0"),
     ("  seed: 1\n", "  seed: 1\n  flight_ctrl_uri: /dev/ttyUSB0\n", "flight_ctrl_uri",
      "backend.flight_ctrl_uri: unknown key; expected one of: clock, disturbances, imu_rate_hz, "
-     "kind, mocap_latency_s, mocap_rate_hz, seed"),
+     "kind, seed"),
 ])
 def test_that_a_malformed_session_gives_its_precise_message(
         tmp_path: Path, old: str, new: str, fragment: str, message: str) -> None:
