@@ -71,6 +71,8 @@ log = logging.getLogger(__name__)
 SDK_BAUDS = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600,
              1000000, 1152000, 2000000, 2500000, 3000000, 3500000, 4000000)
 """The only rates ``PortHandler.setBaudRate`` accepts (dynamixel-sdk 4.1.0)."""
+TURN_JUMP_STEPS = 2048
+"""A Present Position jump larger than half a turn between two reads means a power cycle."""
 
 
 # ---------------------------------------------------------------------------- errors
@@ -457,7 +459,7 @@ class _Worker:
         self.goal_rad = math.nan      # last rate-limited goal written
         self.goal_t = 0.0
         self.last_present: int | None = None
-        self.fatal: ServoHealth | None = None
+        self.had_errors = False
         self.next_reconnect = 0.0
 
     # -- publishing
@@ -507,7 +509,7 @@ class _Worker:
         speed = moving_speed_for_rate(cfg.max_tilt_rate_rad_s / cfg.gear_ratio)
         link.write(Reg.MOVING_SPEED, 2, speed)
         present = to_signed16(_u16(link.read(Reg.PRESENT_POSITION, 2)[0], 0))
-        if self.last_present is not None and abs(present - self.last_present) > 2048:
+        if self.last_present is not None and abs(present - self.last_present) > TURN_JUMP_STEPS:
             # The turn count moved under us: the servo was power-cycled; the zero is lost.
             self.homed = False
         # Hold where it is: goal = present before the torque comes on.
@@ -535,6 +537,11 @@ class _Worker:
         errors |= err
         t_s = time.monotonic()
         present = to_signed16(_u16(data, 0))
+        if self.last_present is not None and abs(present - self.last_present) > TURN_JUMP_STEPS:
+            # No motion covers half a turn in one cycle: the turn count restarted (power cycle).
+            # The zero is lost; configure again (torque on, holding) and wait for home().
+            self.homed = False
+            self.configured = False
         self.last_present = present
         v = self.values
         v[_S.T_S] = t_s
@@ -547,7 +554,12 @@ class _Worker:
         v[_S.TEMP] = float(data[7])
         v[_S.MOVING] = float(data[10])
         if errors:
+            self.had_errors = True
             return ServoHealth.SERVO_ERROR, errors
+        if self.had_errors:
+            # The Shutdown mask may have cut the torque during the fault: configure again.
+            self.had_errors = False
+            self.configured = False
         return (ServoHealth.OK if self.homed else ServoHealth.HOMING_REQUIRED), errors
 
     # -- commands from the owner (rare; the owner waits for the answer)

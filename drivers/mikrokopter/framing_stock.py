@@ -94,7 +94,8 @@ def encode_frame(address: int, cmd: bytes, payload: bytes = b"") -> bytes:
         raise ValueError("the command is one byte")
     body = bytes((START, ord("a") + int(address))) + cmd + encode64(payload)
     if len(body) + 3 > MAX_FRAME_CHARS:
-        raise ValueError(f"payload of {len(payload)} bytes exceeds the {MAX_FRAME_CHARS}-char frame")
+        raise ValueError(
+            f"payload of {len(payload)} bytes exceeds the {MAX_FRAME_CHARS}-char frame")
     return body + _crc(body) + b"\r"
 
 

@@ -33,7 +33,7 @@ board -> host           cmd    payload (length includes the cmd byte)
 :class:`TextMessage`    ``N A E``  info / warning / error text
 ======================  =====  =========================================================
 
-A message of the wrong length is rejected (:class:`MalformedMessage`), as the LAAS host does.
+A message of the wrong length is rejected (:class:`MalformedMessageError`), as the LAAS host does.
 
 Stock MikroKopter (HiSystems FlightCtrl V2.12a, little-endian AVR structs; ``payload()`` gives
 the bytes before base64 framing; decoders truncate the over-decoded payload to the struct size):
@@ -64,6 +64,7 @@ __all__ = [
     "BoardMessage",
     "ClockRateMessage",
     "Data3D",
+    "Data3DRequest",
     "DebugOut",
     "DebugRequest",
     "EngineTest",
@@ -76,7 +77,7 @@ __all__ = [
     "ImuAxes",
     "ImuMessage",
     "MagMessage",
-    "MalformedMessage",
+    "MalformedMessageError",
     "MotorMessage",
     "SetStreamPeriod",
     "SpinRates",
@@ -88,7 +89,6 @@ __all__ = [
     "Throttles",
     "VersionInfo",
     "VersionRequest",
-    "Data3DRequest",
     "decode_board_message",
     "decode_host_message",
     "decode_stock_message",
@@ -105,7 +105,7 @@ MIN_SPIN_HZ = 1e6 / 65535
 _HALF_PERIOD_NUM = 500_000.0  # 1e6 / 2: half period in µs of a rotation at 1 Hz
 
 
-class MalformedMessage(ValueError):
+class MalformedMessageError(ValueError):
     """A deframed message with an unknown command or the wrong length for its command."""
 
     def __init__(self, cmd: bytes, reason: str) -> None:
@@ -290,7 +290,7 @@ HostMessage = Identify | SetStreamPeriod | StartMotors | StopMotors | SpinRates 
 def decode_host_message(msg: bytes) -> HostMessage:
     """Decode a deframed host -> board tk3 message (what the emulated board receives)."""
     if not msg:
-        raise MalformedMessage(b"", "empty message")
+        raise MalformedMessageError(b"", "empty message")
     cmd, payload = msg[:1], msg[1:]
     n = len(payload)
     if cmd == b"?":
@@ -298,23 +298,23 @@ def decode_host_message(msg: bytes) -> HostMessage:
     for stream in Stream:
         if cmd == stream.value:
             if n != 4:
-                raise MalformedMessage(cmd, f"{n + 1} bytes, expected 5")
+                raise MalformedMessageError(cmd, f"{n + 1} bytes, expected 5")
             return SetStreamPeriod(stream, SetStreamPeriod.WIRE.unpack(payload)[0])
     if cmd in (b"g", b"x"):
         if n > 1:
-            raise MalformedMessage(cmd, f"{n + 1} bytes, expected 1 or 2")
+            raise MalformedMessageError(cmd, f"{n + 1} bytes, expected 1 or 2")
         motor = payload[0] if n else None
         return StartMotors(motor) if cmd == b"g" else StopMotors(motor)
     if cmd in (b"w", b"q"):
         if n % 2 or n == 0:
-            raise MalformedMessage(cmd, f"odd or empty payload of {n} bytes")
+            raise MalformedMessageError(cmd, f"odd or empty payload of {n} bytes")
         values = struct.unpack(f">{n // 2}h", payload)
         return SpinRates(values) if cmd == b"w" else Throttles(values)
     if cmd == b"~":
         if n != 2:
-            raise MalformedMessage(cmd, f"{n + 1} bytes, expected 3")
+            raise MalformedMessageError(cmd, f"{n + 1} bytes, expected 3")
         return Beep(Beep.WIRE.unpack(payload)[0])
-    raise MalformedMessage(cmd, "unknown command")
+    raise MalformedMessageError(cmd, "unknown command")
 
 
 # --------------------------------------------------------------------------------------------
@@ -470,18 +470,18 @@ BOARD_MESSAGES: dict[bytes, type[ImuMessage] | type[MagMessage] | type[MotorMess
 
 def decode_board_message(msg: bytes) -> BoardMessage:
     """Decode a deframed board -> host tk3 message; wrong length or unknown cmd raises
-    :class:`MalformedMessage`."""
+    :class:`MalformedMessageError`."""
     cmd = msg[:1]
     cls = BOARD_MESSAGES.get(cmd)
     if cls is not None:
         if len(msg) != cls.WIRE.size + 1:
-            raise MalformedMessage(cmd, f"{len(msg)} bytes, expected {cls.WIRE.size + 1}")
+            raise MalformedMessageError(cmd, f"{len(msg)} bytes, expected {cls.WIRE.size + 1}")
         return cls.decode(msg[1:])
     if cmd == b"?":
         return IdentityMessage(msg[1:].decode("ascii", "replace"))
     if cmd in (b"N", b"A", b"E"):
         return TextMessage(cmd, msg[1:].decode("ascii", "replace"))
-    raise MalformedMessage(cmd, "unknown command")
+    raise MalformedMessageError(cmd, "unknown command")
 
 
 # --------------------------------------------------------------------------------------------
@@ -490,7 +490,7 @@ def decode_board_message(msg: bytes) -> BoardMessage:
 
 def _need(cmd: bytes, data: bytes, size: int) -> bytes:
     if len(data) < size:
-        raise MalformedMessage(cmd, f"{len(data)} payload bytes, expected at least {size}")
+        raise MalformedMessageError(cmd, f"{len(data)} payload bytes, expected at least {size}")
     return data[:size]
 
 
@@ -697,4 +697,4 @@ def decode_stock_message(cmd: bytes, data: bytes) -> StockMessage:
         return EngineTest.decode(data)
     if cmd == b"T":
         return EngineTestAck()
-    raise MalformedMessage(cmd, "unknown stock command")
+    raise MalformedMessageError(cmd, "unknown stock command")

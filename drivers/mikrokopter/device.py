@@ -1,0 +1,776 @@
+"""The Flight-Ctrl device: the 500 Hz link between the ground station and the FAST-Hex.
+
+Wire protocol: LAAS tk3 (:mod:`.framing_tk3`, :mod:`.messages`) over a raw 8N1 serial line,
+500000 baud on the real robot (``serial:///dev/ttyUSB0?baud=500000``) or a pty to the emulator
+(``pty:///tmp/fasthex/flight-ctrl``); any :mod:`drivers.transport` URI works.
+
+Connect sequence (as the LAAS ``rotorcraft`` host does it): flush, send ``?`` up to four times
+with a 0.5 s wait each and match the answer against the accepted firmware ids (``fnmatch``
+patterns, default ``mkfl1.8*``). A board that stays silent is asked ``v`` in the stock
+MikroKopter framing (``#bv@x\\r``); if it answers, :class:`StockFirmwareError` says it runs the
+stock firmware, which cannot stream the IMU at 500 Hz nor take per-motor spin rates. Then the
+stream periods are set (``b``, ``m``, ``i``, ``c``).
+
+A reader thread owns the receive side. It timestamps every chunk on the injected clock, deframes,
+decodes, checks lengths, ranges and IMU sequence numbers, and puts the results into single-slot
+mailboxes: the newest IMU sample (handed to :meth:`FlightCtrl.wait_next`, never queued), the
+newest state of each motor, battery and magnetometer. IMU sample times are rebuilt from the
+sequence number and the configured period (passive synchronisation: the offset follows the
+earliest arrival, and resets after a jump of more than 16 samples). Link statistics (measured
+rates, gaps, staleness, every kind of dropped frame) come from :meth:`FlightCtrl.link_stats`.
+
+The write side is called from the control loop: one ``w`` frame per tick
+(:meth:`FlightCtrl.send_rotor_speeds_hz`), about 15 bytes, under a lock shared with the other
+commands.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import enum
+import fnmatch
+import itertools
+import logging
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+from drivers.errors import DeviceLostError, DriverError, TransportError
+from drivers.mikrokopter import framing_stock, framing_tk3
+from drivers.mikrokopter import messages as mkm
+from drivers.transport import Transport, open_transport
+
+__all__ = [
+    "BatterySample",
+    "BoardIdentity",
+    "FlightCtrl",
+    "FlightCtrlConfig",
+    "FlightCtrlError",
+    "FlightCtrlIdentityError",
+    "ImuSample",
+    "LinkHealth",
+    "LinkStats",
+    "MagSample",
+    "MotorStartError",
+    "MotorState",
+    "MotorStatus",
+    "MotorsSnapshot",
+    "StockFirmwareError",
+    "StreamStats",
+]
+
+log = logging.getLogger(__name__)
+
+Vec3 = tuple[float, float, float]
+Clock = Callable[[], int]
+
+_SEQ_JUMP_RESET = 16  # rotorcraft mk_get_ts: a larger jump resets the time base
+
+
+# ------------------------------------------------------------------------------------ errors
+
+
+class FlightCtrlError(DriverError):
+    """The Flight-Ctrl answered, but not as a flyable FAST-Hex board."""
+
+
+class FlightCtrlIdentityError(FlightCtrlError):
+    """No answer to the identification, or a firmware id that is not accepted."""
+
+
+class StockFirmwareError(FlightCtrlIdentityError):
+    """The board runs the stock HiSystems firmware: fine for bench tests, unable to fly here."""
+
+    def __init__(self, device: str, version: str) -> None:
+        self.version = version
+        super().__init__(
+            device,
+            f"board runs the stock MikroKopter firmware {version}, which cannot stream the IMU "
+            "at 500 Hz nor take per-motor spin rates in flight; flash tk3-mikrokopter")
+
+
+class MotorStartError(FlightCtrlError):
+    """The motors did not all reach ``spinning`` (or one raised its emergency flag)."""
+
+
+# ------------------------------------------------------------------------------------ samples
+
+
+@dataclass(frozen=True, slots=True)
+class ImuSample:
+    """One IMU sample, body frame of the vehicle (x to propeller 1, z up; at rest +g on z)."""
+
+    seq: int
+    """Sample counter rebuilt from the 8-bit wire sequence (``seq % 256`` is on the wire)."""
+    t_ns: int
+    """Sample time on the host clock, rebuilt from ``seq`` and the configured IMU period."""
+    arrival_t_ns: int
+    """When the reader thread received the bytes (host clock)."""
+    gyro_rad_s: Vec3
+    accel_m_s2: Vec3
+
+
+class MotorState(enum.Enum):
+    OFF = "off"
+    STARTING = "starting"
+    SPINNING = "spinning"
+    EMERGENCY = "emergency"
+
+
+@dataclass(frozen=True, slots=True)
+class MotorStatus:
+    motor_id: int
+    """1-based, propeller order of the paper."""
+    state: MotorState
+    speed_hz: float
+    """Measured spin rate (Hz, positive; 0 when not spinning)."""
+    throttle_pct: float
+    current_a: float
+    t_ns: int
+    """Arrival time of the ``M`` frame."""
+
+
+@dataclass(frozen=True, slots=True)
+class MotorsSnapshot:
+    """The newest state of every motor (``None``: no ``M`` frame yet for that motor)."""
+
+    motors: tuple[MotorStatus | None, ...]
+
+    @property
+    def all_spinning(self) -> bool:
+        return all(m is not None and m.state == MotorState.SPINNING for m in self.motors)
+
+    @property
+    def any_emergency(self) -> bool:
+        return any(m is not None and m.state == MotorState.EMERGENCY for m in self.motors)
+
+    @property
+    def speeds_hz(self) -> tuple[float, ...]:
+        return tuple(m.speed_hz if m is not None else math.nan for m in self.motors)
+
+    @property
+    def currents_a(self) -> tuple[float, ...]:
+        return tuple(m.current_a if m is not None else math.nan for m in self.motors)
+
+
+@dataclass(frozen=True, slots=True)
+class BatterySample:
+    seq: int
+    t_ns: int
+    voltage_v: float
+
+
+@dataclass(frozen=True, slots=True)
+class MagSample:
+    seq: int
+    t_ns: int
+    field_t: Vec3
+    """Body frame, tesla."""
+
+
+@dataclass(frozen=True, slots=True)
+class BoardIdentity:
+    protocol: str
+    """``tk3`` or ``stock``."""
+    firmware_id: str
+    """tk3 id (``mkfl1.8``) or the stock version (``2.12a``)."""
+    accepted: bool
+    """Whether this board can fly the FAST-Hex with the configured firmware ids."""
+
+
+class LinkHealth(enum.Enum):
+    NOT_CONNECTED = "not connected"
+    OK = "ok"
+    RATE_LOW = "IMU rate below the minimum fraction of the set rate"
+    STALE = "no IMU sample for longer than the staleness limit"
+    LOST = "device lost"
+
+
+@dataclass(frozen=True, slots=True)
+class StreamStats:
+    name: str
+    nominal_rate_hz: float
+    measured_rate_hz: float
+    """Arrivals per second over the last rate window (host clock)."""
+    received: int
+    missing: int
+    """Samples known lost from sequence-number gaps (IMU only)."""
+    age_s: float
+    """Time since the last arrival (inf if none)."""
+    max_interval_s: float
+    """Largest interval between two arrivals within the rate window."""
+
+
+@dataclass(frozen=True, slots=True)
+class LinkStats:
+    health: LinkHealth
+    imu: StreamStats
+    motor: StreamStats
+    battery: StreamStats
+    mag: StreamStats
+    frames: int
+    """Deframed messages, valid or not."""
+    garbage_bytes: int
+    frame_errors: int
+    """Aborted, truncated, oversize, empty or badly escaped frames."""
+    malformed: int
+    """Wrong length or unknown command."""
+    implausible: int
+    """Values outside the sensor range (dropped)."""
+    seq_rejected: int
+    """IMU samples dropped because their sequence number did not fit."""
+    resyncs: int
+    imu_overwritten: int
+    """Samples replaced in the mailbox before the loop took them."""
+    frames_sent: int
+    texts: tuple[str, ...]
+    """The last info/warning/error texts from the board (``N: ...``)."""
+
+    @property
+    def dropped(self) -> int:
+        return self.frame_errors + self.malformed + self.implausible + self.seq_rejected
+
+
+# ------------------------------------------------------------------------------------ config
+
+
+@dataclass(frozen=True, slots=True)
+class FlightCtrlConfig:
+    """Settings of the Flight-Ctrl link (rates in Hz, times in s)."""
+
+    firmware_ids: tuple[str, ...] = ("mkfl1.8*",)
+    imu_rate_hz: float = 500.0
+    motor_rate_hz: float = 50.0
+    battery_rate_hz: float = 1.0
+    mag_rate_hz: float = 0.0
+    n_motors: int = 6
+    spin_directions: tuple[int, ...] = (1, 1, 1, 1, 1, 1)
+    """Sign of the ``w`` value per motor (+1/-1), as the BL-Ctrls are wired."""
+    imu_axes: mkm.ImuAxes = field(default_factory=mkm.ImuAxes)
+    identify_attempts: int = 4
+    identify_timeout_s: float = 0.5
+    imu_stale_after_s: float = 0.01
+    min_rate_fraction: float = 0.8
+    rate_window_s: float = 0.5
+    max_gyro_rad_s: float = 17.5
+    """Gyro full scale (±1000 °/s); larger readings are corrupted and dropped."""
+    max_battery_v: float = 60.0
+
+    def __post_init__(self) -> None:
+        if len(self.spin_directions) != self.n_motors or any(
+                d not in (1, -1) for d in self.spin_directions):
+            raise ValueError(f"spin_directions needs {self.n_motors} values of +1 or -1")
+        for name in ("imu_rate_hz", "motor_rate_hz", "battery_rate_hz", "mag_rate_hz"):
+            rate = getattr(self, name)
+            if not 0.0 <= rate <= 2000.0:
+                raise ValueError(f"{name} = {rate} outside 0..2000 Hz")
+        if not 0.0 < self.min_rate_fraction <= 1.0:
+            raise ValueError("min_rate_fraction must be in (0, 1]")
+
+
+# ------------------------------------------------------------------------------------ streams
+
+
+class _RateMeter:
+    """Arrival times over a sliding window (host clock, ns)."""
+
+    def __init__(self, window_ns: int) -> None:
+        self.window_ns = window_ns
+        self.arrivals: deque[int] = deque(maxlen=8192)
+        self.received = 0
+        self.first_ns: int | None = None
+
+    def add(self, t_ns: int) -> None:
+        self.received += 1
+        if self.first_ns is None:
+            self.first_ns = t_ns
+        self.arrivals.append(t_ns)
+
+    def reset(self) -> None:
+        self.arrivals.clear()
+        self.first_ns = None
+
+    def stats(self, name: str, nominal_hz: float, now_ns: int, missing: int = 0) -> StreamStats:
+        while self.arrivals and self.arrivals[0] < now_ns - self.window_ns:
+            self.arrivals.popleft()
+        arr = list(self.arrivals)
+        span = self.window_ns if self.first_ns is None else min(
+            self.window_ns, max(now_ns - self.first_ns, 1))
+        rate = len(arr) * 1e9 / span if arr else 0.0
+        gaps = [b - a for a, b in itertools.pairwise(arr)]
+        age = (now_ns - arr[-1]) / 1e9 if arr else math.inf
+        return StreamStats(name, nominal_hz, rate, self.received, missing, age,
+                           max(gaps) / 1e9 if gaps else math.inf)
+
+
+class _ImuTimeBase:
+    """Rebuilds sample counters and times from 8-bit sequence numbers.
+
+    A sample whose sequence number is not the next one is accepted as a gap only if at most
+    16 samples are missing *and* enough time passed for them; otherwise it is held as a suspect
+    (a corrupted sequence byte looks the same) and dropped, and the next sample that continues
+    the suspect's sequence resynchronises the time base.
+    """
+
+    def __init__(self, period_ns: int) -> None:
+        self.period_ns = period_ns
+        self.count: int | None = None  # unwrapped counter of the last accepted sample
+        self.last_arrival_ns = 0
+        self.offset_ns = 0
+        self.suspect: int | None = None
+        self.missing = 0
+        self.rejected = 0
+        self.resyncs = 0
+
+    def accept(self, seq8: int, arrival_ns: int) -> tuple[int, int] | None:
+        """(counter, sample time) for an accepted sample, None for a rejected one."""
+        if self.count is None:
+            return self._reset(seq8, seq8, arrival_ns)
+        gap = (seq8 - self.count - 1) & 0xFF
+        if gap == 0:
+            count = self.count + 1
+        elif self.suspect is not None and seq8 == (self.suspect + 1) & 0xFF:
+            self.resyncs += 1
+            self.missing += (seq8 - self.count - 1) & 0xFF
+            return self._reset(self.count + 1 + ((seq8 - self.count - 1) & 0xFF), seq8,
+                               arrival_ns)
+        elif gap <= _SEQ_JUMP_RESET and (
+                arrival_ns - self.last_arrival_ns) * 2 >= (gap + 1) * self.period_ns:
+            self.missing += gap
+            count = self.count + 1 + gap
+        else:
+            self.suspect = seq8
+            self.rejected += 1
+            return None
+        self.suspect = None
+        self.count = count
+        self.last_arrival_ns = arrival_ns
+        base = count * self.period_ns
+        # The offset follows the earliest arrival (least latency), drifting up by at most
+        # 100 ppm per sample, and never lags the arrival by more than 16 periods.
+        candidate = arrival_ns - base
+        self.offset_ns = min(self.offset_ns + self.period_ns // 10_000, candidate)
+        if candidate - self.offset_ns > _SEQ_JUMP_RESET * self.period_ns:
+            self.offset_ns = candidate
+        return count, base + self.offset_ns
+
+    def _reset(self, count: int, seq8: int, arrival_ns: int) -> tuple[int, int]:
+        self.count = count
+        self.suspect = None
+        self.last_arrival_ns = arrival_ns
+        self.offset_ns = arrival_ns - count * self.period_ns
+        return count, arrival_ns
+
+
+# ------------------------------------------------------------------------------------ device
+
+
+class FlightCtrl:
+    """The MikroKopter Flight-Ctrl running tk3-mikrokopter, as the 500 Hz loop uses it.
+
+    Build with :meth:`open` (from a URI) or from any :class:`~drivers.transport.Transport`.
+    ``clock`` returns nanoseconds (``time.monotonic_ns`` on hardware); every timestamp, rate
+    and staleness figure reads it.
+    """
+
+    def __init__(self, transport: Transport, config: FlightCtrlConfig | None = None,
+                 clock: Clock = time.monotonic_ns) -> None:
+        self.config = config or FlightCtrlConfig()
+        self.device = transport.name
+        self._transport = transport
+        self._clock = clock
+        self._write_lock = threading.Lock()
+        self._cond = threading.Condition()
+        self._tk3 = framing_tk3.Tk3Parser()
+        self._stock = framing_stock.StockParser()
+        self._listen_stock = False
+        self._reader: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._lost: TransportError | None = None
+        self._connected = False
+        # mailboxes (guarded by _cond)
+        self._imu: ImuSample | None = None
+        self._imu_count = 0
+        self._imu_taken = 0
+        self._motors: list[MotorStatus | None] = [None] * self.config.n_motors
+        self._motor_updates = 0
+        self._battery: BatterySample | None = None
+        self._mag: MagSample | None = None
+        self._identity: str | None = None
+        self._stock_version: mkm.VersionInfo | None = None
+        self._texts: deque[str] = deque(maxlen=16)
+        # statistics (reader thread writes, others read under _cond)
+        self._rates: dict[str, float] = {"imu": 0.0, "motor": 0.0, "battery": 0.0, "mag": 0.0}
+        window = round(self.config.rate_window_s * 1e9)
+        self._meters = {k: _RateMeter(window) for k in self._rates}
+        self._timebase = _ImuTimeBase(2_000_000)
+        self._malformed = 0
+        self._implausible = 0
+        self._imu_overwritten = 0
+        self._frames_sent = 0
+
+    @classmethod
+    def open(cls, uri: str, config: FlightCtrlConfig | None = None,
+             clock: Clock = time.monotonic_ns) -> FlightCtrl:
+        """Open the transport named by ``uri`` (see :mod:`drivers.transport`)."""
+        return cls(open_transport(uri), config, clock)
+
+    # ---------------------------------------------------------------- connection
+
+    def identify(self) -> BoardIdentity:
+        """Ask ``?`` (tk3), then ``v`` (stock); starts the reader thread if needed.
+
+        Raises :class:`FlightCtrlIdentityError` if the board answers neither.
+        """
+        self._ensure_reader()
+        cfg = self.config
+        with self._cond:
+            self._identity = None
+        for _ in range(cfg.identify_attempts):
+            self._write(framing_tk3.encode_frame(mkm.Identify().encode()))
+            if self._wait_for(lambda: self._identity is not None, cfg.identify_timeout_s):
+                ident = (self._identity or "").lstrip("?")
+                ok = any(fnmatch.fnmatchcase(ident, p) for p in cfg.firmware_ids)
+                return BoardIdentity("tk3", ident, ok)
+        with self._cond:
+            self._listen_stock = True
+            self._stock_version = None
+        try:
+            self._write(framing_stock.encode_frame(framing_stock.Address.FLIGHT_CTRL, b"v"))
+            if self._wait_for(lambda: self._stock_version is not None,
+                              2 * cfg.identify_timeout_s):
+                assert self._stock_version is not None
+                return BoardIdentity("stock", self._stock_version.version, False)
+        finally:
+            with self._cond:
+                self._listen_stock = False
+        raise FlightCtrlIdentityError(
+            self.device, f"no answer to '?' (tk3) after {cfg.identify_attempts} tries nor to "
+            "'v' (stock MikroKopter): check the cable, power and baud rate")
+
+    def connect(self) -> BoardIdentity:
+        """Flush, identify, refuse boards that cannot fly, then set the stream rates."""
+        discard = getattr(self._transport, "discard_input", None)
+        if callable(discard):
+            discard()
+        ident = self.identify()
+        if ident.protocol == "stock":
+            raise StockFirmwareError(self.device, ident.firmware_id)
+        if not ident.accepted:
+            raise FlightCtrlIdentityError(
+                self.device, f"firmware id {ident.firmware_id!r} is not one of the accepted "
+                f"{', '.join(self.config.firmware_ids)}")
+        cfg = self.config
+        self.set_stream_rates(imu_hz=cfg.imu_rate_hz, motor_hz=cfg.motor_rate_hz,
+                              battery_hz=cfg.battery_rate_hz, mag_hz=cfg.mag_rate_hz)
+        self._connected = True
+        log.info("%s: Flight-Ctrl %s, IMU %.0f Hz", self.device, ident.firmware_id,
+                 cfg.imu_rate_hz)
+        return ident
+
+    def set_stream_rates(self, *, imu_hz: float | None = None, motor_hz: float | None = None,
+                         battery_hz: float | None = None, mag_hz: float | None = None) -> None:
+        """Set stream rates in Hz (0 = off; None = unchanged), in the LAAS order b, m, i, c."""
+        for key, stream, rate in (("battery", mkm.Stream.BATTERY, battery_hz),
+                                  ("motor", mkm.Stream.MOTOR, motor_hz),
+                                  ("imu", mkm.Stream.IMU, imu_hz),
+                                  ("mag", mkm.Stream.MAG, mag_hz)):
+            if rate is None:
+                continue
+            msg = mkm.SetStreamPeriod.from_rate_hz(stream, rate)
+            with self._cond:
+                self._rates[key] = rate
+                self._meters[key].reset()
+                # at least 2.5 periods in the window, so that a 1 Hz battery stream has a rate
+                self._meters[key].window_ns = round(
+                    max(self.config.rate_window_s, 2.5 / rate if rate > 0 else 0.0) * 1e9)
+                if key == "imu" and msg.period_us:
+                    self._timebase = _ImuTimeBase(msg.period_us * 1000)
+            self._write(framing_tk3.encode_frame(msg.encode()))
+
+    # ---------------------------------------------------------------- the loop's side
+
+    def wait_next(self, timeout_s: float) -> ImuSample | None:
+        """The newest IMU sample not yet returned, waiting up to ``timeout_s``; None on timeout.
+
+        Samples that arrived while the caller was busy are skipped (counted as overwritten),
+        never queued. Raises :class:`DeviceLostError` once the device is gone.
+        """
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while self._imu_count == self._imu_taken:
+                if self._lost is not None:
+                    raise self._lost
+                remaining = deadline - time.monotonic()
+                if remaining <= 0.0 or self._stop.is_set():
+                    return None
+                self._cond.wait(remaining)
+            self._imu_overwritten += self._imu_count - self._imu_taken - 1
+            self._imu_taken = self._imu_count
+            return self._imu
+
+    def latest_imu(self) -> ImuSample | None:
+        with self._cond:
+            return self._imu
+
+    def send_rotor_speeds_hz(self, speeds_hz: Sequence[float]) -> None:
+        """One ``w`` frame: the spin rate of every motor in Hz (positive; the configured
+        directions give the sign on the wire; below 15.26 Hz the slowest speed is sent)."""
+        dirs = self.config.spin_directions
+        if len(speeds_hz) != len(dirs):
+            raise ValueError(f"{self.device}: expected {len(dirs)} spin rates, "
+                             f"got {len(speeds_hz)}")
+        periods = tuple(mkm.spin_hz_to_half_period(d * abs(s))
+                        for d, s in zip(dirs, speeds_hz, strict=True))
+        self._write(framing_tk3.encode_frame(mkm.SpinRates(periods).encode()))
+
+    def start_motors(self, timeout_s: float = 3.0) -> MotorsSnapshot:
+        """Start every motor (``g`` per motor) and wait until all report ``spinning``.
+
+        While waiting, one slowest-speed ``w`` is sent per IMU sample (or every 20 ms without
+        an IMU stream), as the flight loop would, so that the board's watchdog stays fed (and a
+        lockstep emulator advances). ``g`` is re-sent every 100 such periods to motors that are
+        neither starting nor spinning. On an emergency flag or a timeout every motor is stopped
+        and :class:`MotorStartError` raised. Needs the motor (``M``) stream.
+        """
+        if self._rates["motor"] <= 0.0:
+            raise MotorStartError(self.device, "the motor stream is off: cannot see the motors")
+        n = self.config.n_motors
+        for motor_id in range(1, n + 1):
+            self._write(framing_tk3.encode_frame(mkm.StartMotors(motor_id).encode()))
+        slowest = [0.0] * n
+        deadline = time.monotonic() + timeout_s
+        ticks = 0
+        while True:
+            if self.wait_next(0.02) is None and self._lost is not None:
+                raise self._lost
+            self.send_rotor_speeds_hz(slowest)
+            ticks += 1
+            snap = self.motors()
+            if snap.any_emergency:
+                self.stop_motors()
+                raise MotorStartError(self.device, "a motor raised its emergency flag "
+                                      f"while starting: {self._describe(snap)}")
+            if snap.all_spinning:
+                return snap
+            if time.monotonic() > deadline:
+                self.stop_motors()
+                raise MotorStartError(self.device, f"motors not spinning after {timeout_s} s: "
+                                      f"{self._describe(snap)}")
+            if ticks % 100 == 0:
+                for i, m in enumerate(snap.motors):
+                    if m is None or m.state == MotorState.OFF:
+                        self._write(framing_tk3.encode_frame(mkm.StartMotors(i + 1).encode()))
+
+    @staticmethod
+    def _describe(snap: MotorsSnapshot) -> str:
+        return ", ".join(f"{i + 1}: {m.state.value if m else 'no data'}"
+                         for i, m in enumerate(snap.motors))
+
+    def stop_motors(self) -> None:
+        """Stop every motor (``x``)."""
+        self._write(framing_tk3.encode_frame(mkm.StopMotors().encode()))
+
+    def beep(self, freq_hz: int = 440) -> None:
+        self._write(framing_tk3.encode_frame(mkm.Beep(freq_hz).encode()))
+
+    # ---------------------------------------------------------------- snapshots
+
+    def motors(self) -> MotorsSnapshot:
+        with self._cond:
+            return MotorsSnapshot(tuple(self._motors))
+
+    def wait_motor_update(self, timeout_s: float) -> MotorsSnapshot | None:
+        """Block until a new ``M`` frame arrives (or the timeout); the snapshot or None."""
+        with self._cond:
+            seen = self._motor_updates
+            if not self._cond.wait_for(
+                    lambda: self._motor_updates != seen or self._lost is not None, timeout_s):
+                return None
+            if self._lost is not None:
+                raise self._lost
+            return MotorsSnapshot(tuple(self._motors))
+
+    def battery(self) -> BatterySample | None:
+        with self._cond:
+            return self._battery
+
+    def magnetometer(self) -> MagSample | None:
+        with self._cond:
+            return self._mag
+
+    def health(self) -> LinkHealth:
+        return self.link_stats().health
+
+    def link_stats(self) -> LinkStats:
+        now = self._clock()
+        cfg = self.config
+        with self._cond:
+            streams = {k: self._meters[k].stats(k, self._rates[k], now,
+                                                self._timebase.missing if k == "imu" else 0)
+                       for k in self._meters}
+            imu = streams["imu"]
+            if self._lost is not None:
+                health = LinkHealth.LOST
+            elif not self._connected:
+                health = LinkHealth.NOT_CONNECTED
+            elif imu.nominal_rate_hz > 0 and imu.age_s > cfg.imu_stale_after_s:
+                health = LinkHealth.STALE
+            elif (imu.nominal_rate_hz > 0 and self._meters["imu"].first_ns is not None
+                  and now - self._meters["imu"].first_ns >= cfg.rate_window_s * 1e9
+                  and imu.measured_rate_hz < cfg.min_rate_fraction * imu.nominal_rate_hz):
+                health = LinkHealth.RATE_LOW
+            else:
+                health = LinkHealth.OK
+            tk3s = self._tk3.stats
+            return LinkStats(
+                health=health, imu=imu, motor=streams["motor"], battery=streams["battery"],
+                mag=streams["mag"], frames=tk3s.messages + tk3s.frame_errors,
+                garbage_bytes=tk3s.garbage_bytes, frame_errors=tk3s.frame_errors,
+                malformed=self._malformed, implausible=self._implausible,
+                seq_rejected=self._timebase.rejected, resyncs=self._timebase.resyncs,
+                imu_overwritten=self._imu_overwritten, frames_sent=self._frames_sent,
+                texts=tuple(self._texts))
+
+    # ---------------------------------------------------------------- lifetime
+
+    def close(self) -> None:
+        """Stop the reader thread and release the transport. Does not stop the motors."""
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+        if self._reader is not None and self._reader is not threading.current_thread():
+            self._reader.join(timeout=2.0)
+        self._transport.close()
+
+    def __enter__(self) -> FlightCtrl:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ---------------------------------------------------------------- internals
+
+    def _write(self, frame: bytes) -> None:
+        if self._lost is not None:
+            raise self._lost
+        with self._write_lock:
+            try:
+                self._transport.write(frame)
+            except DeviceLostError as exc:
+                self._mark_lost(exc)
+                raise
+            self._frames_sent += 1
+
+    def _wait_for(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
+        with self._cond:
+            ok = self._cond.wait_for(lambda: predicate() or self._lost is not None, timeout_s)
+            if self._lost is not None:
+                raise self._lost
+            return ok
+
+    def _ensure_reader(self) -> None:
+        if self._reader is None:
+            self._reader = threading.Thread(target=self._read_loop, daemon=True,
+                                            name=f"flightctrl-reader {self.device}")
+            self._reader.start()
+
+    def _mark_lost(self, exc: TransportError) -> None:
+        with self._cond:
+            if self._lost is None:
+                self._lost = exc
+                log.error("%s: %s", self.device, exc.message)
+            self._cond.notify_all()
+
+    def _read_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self._transport.read(4096)
+            except TransportError as exc:
+                if not self._stop.is_set():
+                    self._mark_lost(exc)
+                return
+            if not data:
+                continue
+            t_ns = self._clock()
+            with self._cond:
+                if self._listen_stock:
+                    for frame in self._stock.feed(data):
+                        self._on_stock(frame)
+                for raw in self._tk3.feed(data):
+                    self._on_message(raw, t_ns)
+
+    def _on_message(self, raw: bytes, t_ns: int) -> None:
+        """Decode and file one tk3 message (reader thread, ``_cond`` held)."""
+        try:
+            msg = mkm.decode_board_message(raw)
+        except mkm.MalformedMessageError:
+            self._malformed += 1
+            return
+        if isinstance(msg, mkm.ImuMessage):
+            self._on_imu(msg, t_ns)
+        elif isinstance(msg, mkm.MotorMessage):
+            self._on_motor(msg, t_ns)
+        elif isinstance(msg, mkm.BatteryMessage):
+            if msg.voltage_v > self.config.max_battery_v:
+                self._implausible += 1
+                return
+            self._battery = BatterySample(msg.seq, t_ns, msg.voltage_v)
+            self._meters["battery"].add(t_ns)
+        elif isinstance(msg, mkm.MagMessage):
+            self._mag = MagSample(msg.seq, t_ns, self.config.imu_axes.to_body(msg.field_t))
+            self._meters["mag"].add(t_ns)
+        elif isinstance(msg, mkm.IdentityMessage):
+            self._identity = msg.firmware_id
+        elif isinstance(msg, mkm.TextMessage):
+            text = f"{msg.level.decode()}: {msg.text}"
+            self._texts.append(text)
+            (log.error if msg.level == b"E" else log.info)("%s: board says %s", self.device, text)
+        else:
+            return
+        self._cond.notify_all()
+
+    def _on_imu(self, msg: mkm.ImuMessage, t_ns: int) -> None:
+        limit = self.config.max_gyro_rad_s
+        if any(abs(g) > limit for g in msg.gyro_rad_s):
+            self._implausible += 1
+            return
+        stamped = self._timebase.accept(msg.seq, t_ns)
+        if stamped is None:
+            return
+        axes = self.config.imu_axes
+        self._imu = ImuSample(stamped[0], stamped[1], t_ns, axes.to_body(msg.gyro_rad_s),
+                              axes.to_body(msg.accel_m_s2))
+        self._imu_count += 1
+        self._meters["imu"].add(t_ns)
+        self._cond.notify_all()
+
+    def _on_motor(self, msg: mkm.MotorMessage, t_ns: int) -> None:
+        if not 1 <= msg.motor_id <= self.config.n_motors:
+            self._malformed += 1
+            return
+        if msg.emergency:
+            state = MotorState.EMERGENCY
+        elif msg.spinning:
+            state = MotorState.SPINNING
+        elif msg.starting:
+            state = MotorState.STARTING
+        else:
+            state = MotorState.OFF
+        self._motors[msg.motor_id - 1] = MotorStatus(
+            msg.motor_id, state, abs(msg.speed_hz), msg.throttle_pct, msg.current_a, t_ns)
+        self._motor_updates += 1
+        if msg.motor_id == 1:
+            self._meters["motor"].add(t_ns)
+
+    def _on_stock(self, frame: framing_stock.StockFrame) -> None:
+        if frame.cmd != b"V":
+            return
+        with contextlib.suppress(mkm.MalformedMessageError):
+            version = mkm.decode_stock_message(frame.cmd, frame.data)
+            if isinstance(version, mkm.VersionInfo):
+                self._stock_version = version
+                self._cond.notify_all()

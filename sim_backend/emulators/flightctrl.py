@@ -1,0 +1,623 @@
+"""Emulated MikroKopter Flight-Ctrl with six BL-Ctrls, on a pseudo-terminal.
+
+Speaks the same bytes as the board, through the codecs of :mod:`drivers.mikrokopter`:
+
+- **tk3 firmware** (default): answers ``?`` with ``?<firmware_id>`` (``mkfl1.8``), honours the
+  stream periods ``i``/``m``/``b``/``c`` (µs, 0 = off) with an 8-bit sequence number per
+  stream, starts motors on ``g`` (state ``starting`` 0x10 for ``motor_start_s``, then
+  ``spinning`` 0x20 at the slowest speed until a ``w`` arrives), applies ``w`` spin rates to the
+  vehicle's rotors, stops on ``x``, and - as the BL firmware does - stops every running motor
+  and raises the ``emergency`` flag (0x80) when no ``w`` arrived within ``watchdog_s``.
+  Motor-state ``M`` frames are sent for every motor each motor period.
+- **stock firmware** (``firmware="stock"``): ``#``-framed replies to ``v`` (VersionInfo), ``d``
+  (DebugOut stream), ``c`` (Data3D stream), ``t`` (engine test, applied while disarmed) and
+  ``b`` (ExternControl ack); it ignores tk3 frames, like a real stock board.
+
+Clocks (``clock=``):
+
+- ``realtime``: simulated time follows the wall clock; streams are paced by it.
+- ``lockstep``: the emulator advances the vehicle by exactly one IMU period each time a ``w``
+  frame arrives and then sends the next ``I`` sample (plus any ``M``/``B``/``C`` falling due),
+  so a flight runs as fast as the ground station answers and is deterministic. Setting a
+  non-zero IMU period sends one ``I`` at once to start the exchange. If no ``w`` arrives for
+  ``lockstep_grace_s`` of wall time (a dead or not-yet-flying ground station), the emulator
+  free-runs in real time until the next ``w``; the watchdog always counts simulated time, so a
+  dead ground station still gets its motors stopped.
+
+Wire faults (:class:`WireFaults`): output paced at a baud rate (10 bits per byte; frames that
+would overflow a 50 ms UART backlog are dropped and counted), random byte corruption and byte
+drops on the board -> host direction, and :meth:`EmulatedFlightCtrl.disconnect` (the client
+sees the device disappear).
+
+The vehicle is only used through :class:`sim_backend.vehicle.EmulatedVehicle`, every call under
+the optional shared ``lock``. IMU vectors go body -> board axes through the same
+:class:`drivers.mikrokopter.messages.ImuAxes` the driver uses to come back.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import math
+import random
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from enum import IntEnum
+from pathlib import Path
+from typing import Literal
+
+from drivers.mikrokopter import framing_stock, framing_tk3
+from drivers.mikrokopter import messages as mkm
+from sim_backend.ptylink import PtyEndpoint
+from sim_backend.vehicle import EmulatedVehicle
+
+__all__ = ["EmulatedFlightCtrl", "EmulatorStats", "FlightCtrlEmulatorConfig", "SentImu",
+           "WireFaults"]
+
+log = logging.getLogger(__name__)
+
+_NS = 1_000_000_000
+_MAX_STEP_NS = 2_000_000  # physics steps no longer than 2 ms
+_TX_BACKLOG_S = 0.05
+_EARTH_FIELD_W_T = (2.0e-5, 0.0, -4.3e-5)  # roughly mid-latitude Europe, world z up
+_MAX_SPEED_HZ_FOR_THROTTLE = 130.0
+
+
+@dataclass(frozen=True, slots=True)
+class WireFaults:
+    """Faults of the emulated wire (board -> host direction)."""
+
+    baud: int | None = None
+    """Pace output at this rate (8N1: 10 bits per byte); None = as fast as the pty goes."""
+    corrupt_prob: float = 0.0
+    """Probability that a byte is replaced by a different random byte."""
+    drop_prob: float = 0.0
+    """Probability that a byte is lost."""
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("corrupt_prob", "drop_prob"):
+            value = getattr(self, name)
+            if not 0.0 <= value < 1.0:
+                raise ValueError(f"{name} = {value} outside [0, 1)")
+        if self.baud is not None and self.baud <= 0:
+            raise ValueError(f"baud = {self.baud} must be > 0")
+
+
+@dataclass(frozen=True, slots=True)
+class FlightCtrlEmulatorConfig:
+    firmware: Literal["tk3", "stock"] = "tk3"
+    firmware_id: str = "mkfl1.8"
+    """What ``?`` answers (tk3)."""
+    stock_version: tuple[int, int, int] = (2, 12, 0)
+    """SW major, minor, patch reported by a stock board (2.12a)."""
+    n_motors: int = 6
+    clock: Literal["realtime", "lockstep"] = "realtime"
+    watchdog_s: float = 0.25
+    """BL-side timeout: no ``w`` for this long (simulated time) stops the motors."""
+    lockstep_grace_s: float = 2.0
+    """Lockstep only: wall time without any ``w`` after which the emulator free-runs."""
+    lockstep_default_period_s: float = 0.002
+    """Lockstep step while the IMU stream is off."""
+    motor_start_s: float = 0.3
+    """Duration of the open-loop start (``starting`` flag) in simulated time."""
+    imu_axes: mkm.ImuAxes = field(default_factory=mkm.ImuAxes)
+    faults: WireFaults = field(default_factory=WireFaults)
+    record_truth: bool = False
+    """Keep every sent ``I`` sample (with whether the wire altered it) for tests."""
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.n_motors <= 15:
+            raise ValueError(f"n_motors = {self.n_motors} outside 1..15")
+        for name in ("watchdog_s", "lockstep_grace_s", "lockstep_default_period_s",
+                     "motor_start_s"):
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f"{name} must be > 0")
+
+
+@dataclass(slots=True)
+class EmulatorStats:
+    frames_received: int = 0
+    malformed_received: int = 0
+    spin_commands: int = 0
+    imu_sent: int = 0
+    frames_sent: int = 0
+    frames_altered: int = 0
+    """Frames in which at least one byte was corrupted or dropped."""
+    bytes_corrupted: int = 0
+    bytes_dropped: int = 0
+    tx_overruns: int = 0
+    """Frames dropped because the paced UART backlog was full."""
+    stream_slips: int = 0
+    """Stream periods skipped because the emulator fell behind (realtime)."""
+    watchdog_trips: int = 0
+    lockstep_steps: int = 0
+    freerun_entries: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class SentImu:
+    """An ``I`` sample as the emulator sent it (``seq`` = total count, wire seq = seq % 256)."""
+
+    seq: int
+    t_ns: int
+    message: mkm.ImuMessage
+    altered: bool
+
+
+class _MotorState(IntEnum):
+    OFF = 0
+    STARTING = 1
+    SPINNING = 2
+
+
+@dataclass(slots=True)
+class _Motor:
+    state: _MotorState = _MotorState.OFF
+    emergency: bool = False
+    start_ns: int = 0
+    cmd_half_period: int = mkm.HALF_PERIOD_SLOWEST
+
+
+class EmulatedFlightCtrl:
+    """The emulated board. ``start()`` runs it on its own thread; ``stop()`` ends it.
+
+    ``path`` is what a client opens (the stable symlink when ``link_path`` is given).
+    """
+
+    def __init__(self, vehicle: EmulatedVehicle, *, lock: threading.Lock | None = None,
+                 link_path: str | Path | None = None,
+                 config: FlightCtrlEmulatorConfig | None = None) -> None:
+        self.config = config or FlightCtrlEmulatorConfig()
+        self._vehicle = vehicle
+        self._lock: contextlib.AbstractContextManager[object] = (
+            lock if lock is not None else contextlib.nullcontext())
+        self._pty = PtyEndpoint(link_path)
+        self._rng = random.Random(self.config.faults.seed)
+        self._stats = EmulatorStats()
+        self._stats_lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._closed = False
+        self.sent_imu: deque[SentImu] = deque(maxlen=1_000_000)
+        # board state (owned by the emulator thread once started)
+        self._tk3 = framing_tk3.Tk3Parser()
+        self._stock = framing_stock.StockParser()
+        self._motors = [_Motor() for _ in range(self.config.n_motors)]
+        self._periods_ns: dict[str, int] = {}
+        self._due_ns: dict[str, int] = {}
+        self._seq: dict[str, int] = {"I": 0, "M": 0, "B": 0, "C": 0}
+        self._imu_total = 0
+        self._last_w_ns = 0
+        self._last_w_wall = time.monotonic()
+        self._freerun = self.config.clock == "realtime"
+        self._sim_ns = 0
+        self._wall0 = 0.0
+        self._sim0_ns = 0
+        self._tx_queue: deque[tuple[float, bytes]] = deque()
+        self._tx_busy_until = 0.0
+        self._rotor_cmd: tuple[float, ...] = ()
+
+    # ---------------------------------------------------------------- public API
+
+    @property
+    def path(self) -> str:
+        return self._pty.path
+
+    def start(self) -> EmulatedFlightCtrl:
+        if self._thread is not None:
+            raise RuntimeError("emulator already started")
+        with self._lock:
+            self._sim_ns = round(self._vehicle.now_s() * _NS)
+        self._anchor()
+        self._last_w_ns = self._sim_ns
+        self._apply_rotors()
+        self._thread = threading.Thread(target=self._run, name="emulated-flightctrl",
+                                        daemon=True)
+        self._thread.start()
+        log.info("emulated Flight-Ctrl (%s, %s clock) on %s", self.config.firmware,
+                 self.config.clock, self.path)
+        return self
+
+    def stop(self) -> None:
+        """Stop the thread and close the pty (idempotent)."""
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=5.0)
+        self._pty.close()
+        self._closed = True
+
+    def disconnect(self) -> None:
+        """Emulate a pulled cable: the pty disappears under the client."""
+        self.stop()
+
+    def stats(self) -> EmulatorStats:
+        with self._stats_lock:
+            return dataclasses.replace(self._stats)
+
+    def sim_time_s(self) -> float:
+        return self._sim_ns / _NS
+
+    def __enter__(self) -> EmulatedFlightCtrl:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # ---------------------------------------------------------------- thread
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.is_set():
+                self._iterate()
+        except Exception:  # the emulator must not die silently
+            log.exception("emulated Flight-Ctrl crashed")
+            raise
+
+    def _iterate(self) -> None:
+        now = time.monotonic()
+        timeout = self._next_wakeup(now) - now
+        if self._pty.wait_readable(min(max(timeout, 0.0), 0.05)):
+            data = self._pty.read(4096)
+            if data:
+                self._handle_input(data)
+        now = time.monotonic()
+        if not self._freerun and now - self._last_w_wall > self.config.lockstep_grace_s:
+            self._freerun = True
+            self._anchor()
+            self._count("freerun_entries")
+        if self._freerun:
+            self._advance_to(self._sim0_ns + round((time.monotonic() - self._wall0) * _NS))
+        self._flush_tx(time.monotonic())
+
+    def _anchor(self) -> None:
+        self._wall0 = time.monotonic()
+        self._sim0_ns = self._sim_ns
+
+    def _next_wakeup(self, now: float) -> float:
+        wake = now + 0.05
+        if self._tx_queue:
+            wake = min(wake, self._tx_queue[0][0])
+        if self._freerun:
+            event = self._next_event_ns()
+            if event is not None:
+                wake = min(wake, self._wall0 + (event - self._sim0_ns) / _NS)
+        else:
+            wake = min(wake, self._last_w_wall + self.config.lockstep_grace_s)
+        return wake
+
+    # ---------------------------------------------------------------- input
+
+    def _handle_input(self, data: bytes) -> None:
+        if self.config.firmware == "stock":
+            for frame in self._stock.feed(data):
+                self._count("frames_received")
+                self._handle_stock(frame)
+            return
+        for raw in self._tk3.feed(data):
+            self._count("frames_received")
+            try:
+                msg = mkm.decode_host_message(raw)
+            except mkm.MalformedMessageError:
+                self._count("malformed_received")
+                continue
+            self._handle_tk3(msg)
+
+    def _handle_tk3(self, msg: mkm.HostMessage) -> None:
+        if isinstance(msg, mkm.SpinRates):
+            self._on_spin_rates(msg)
+        elif isinstance(msg, mkm.Identify):
+            self._send_tk3(mkm.IdentityMessage(self.config.firmware_id))
+        elif isinstance(msg, mkm.SetStreamPeriod):
+            key = {mkm.Stream.IMU: "I", mkm.Stream.MOTOR: "M", mkm.Stream.BATTERY: "B",
+                   mkm.Stream.MAG: "C"}[msg.stream]
+            self._set_period(key, msg.period_us * 1000)
+            if key == "I" and msg.period_us and not self._freerun:
+                self._emit_due(self._sim_ns)  # lockstep: the first sample starts the exchange
+        elif isinstance(msg, mkm.StartMotors):
+            for i in self._motor_indices(msg.motor_id):
+                m = self._motors[i]
+                if m.state == _MotorState.OFF:
+                    m.state, m.emergency, m.start_ns = _MotorState.STARTING, False, self._sim_ns
+                    m.cmd_half_period = mkm.HALF_PERIOD_SLOWEST
+            self._last_w_ns = self._sim_ns  # the watchdog starts with the start command
+            self._apply_rotors()
+        elif isinstance(msg, mkm.StopMotors):
+            for i in self._motor_indices(msg.motor_id):
+                self._motors[i].state = _MotorState.OFF
+            self._apply_rotors()
+        elif isinstance(msg, mkm.Throttles):
+            pass  # open-loop throttle is not used on the FAST-Hex; accepted and ignored
+        elif isinstance(msg, mkm.Beep):
+            pass
+
+    def _motor_indices(self, motor_id: int | None) -> range:
+        if motor_id is None:
+            return range(len(self._motors))
+        if 1 <= motor_id <= len(self._motors):
+            return range(motor_id - 1, motor_id)
+        return range(0)
+
+    def _on_spin_rates(self, msg: mkm.SpinRates) -> None:
+        self._count("spin_commands")
+        if len(msg.half_periods_us) == len(self._motors):
+            for m, p in zip(self._motors, msg.half_periods_us, strict=True):
+                m.cmd_half_period = p if p != 0 else mkm.HALF_PERIOD_SLOWEST
+            self._last_w_ns = self._sim_ns
+            self._apply_rotors()
+        else:
+            self._count("malformed_received")
+        self._last_w_wall = time.monotonic()
+        if self.config.clock == "lockstep":
+            if self._freerun:
+                self._freerun = False
+            period = self._periods_ns.get("I") or round(
+                self.config.lockstep_default_period_s * _NS)
+            self._advance_to(self._sim_ns + period)
+            self._count("lockstep_steps")
+
+    # ---------------------------------------------------------------- time and events
+
+    def _set_period(self, key: str, period_ns: int) -> None:
+        if period_ns <= 0:
+            self._periods_ns.pop(key, None)
+            self._due_ns.pop(key, None)
+        else:
+            self._periods_ns[key] = period_ns
+            self._due_ns[key] = self._sim_ns
+
+    def _next_event_ns(self) -> int | None:
+        events = list(self._due_ns.values())
+        for m in self._motors:
+            if m.state == _MotorState.STARTING:
+                events.append(m.start_ns + round(self.config.motor_start_s * _NS))
+        if self._any_running():
+            events.append(self._last_w_ns + round(self.config.watchdog_s * _NS) + 1)
+        return min(events) if events else None
+
+    def _any_running(self) -> bool:
+        return any(m.state != _MotorState.OFF for m in self._motors)
+
+    def _advance_to(self, target_ns: int) -> None:
+        """Step the vehicle to ``target_ns``, handling every event on the way in time order."""
+        while True:
+            event = self._next_event_ns()
+            stop = target_ns if event is None else max(self._sim_ns, min(event, target_ns))
+            while self._sim_ns < stop:
+                dt = min(stop - self._sim_ns, _MAX_STEP_NS)
+                with self._lock:
+                    self._vehicle.advance(dt / _NS)
+                self._sim_ns += dt
+            self._update_motors()
+            self._emit_due(self._sim_ns)
+            if self._sim_ns >= target_ns:
+                return
+
+    def _update_motors(self) -> None:
+        changed = False
+        t = self._sim_ns
+        start_ns = round(self.config.motor_start_s * _NS)
+        for m in self._motors:
+            if m.state == _MotorState.STARTING and t >= m.start_ns + start_ns:
+                m.state = _MotorState.SPINNING
+                changed = True
+        if self._any_running() and t > self._last_w_ns + round(self.config.watchdog_s * _NS):
+            for m in self._motors:
+                if m.state != _MotorState.OFF:
+                    m.state, m.emergency = _MotorState.OFF, True
+            self._count("watchdog_trips")
+            log.warning("emulated Flight-Ctrl: no spin-rate command for %.3f s: motors stopped",
+                        self.config.watchdog_s)
+            changed = True
+        if changed:
+            self._apply_rotors()
+
+    def _apply_rotors(self) -> None:
+        speeds: list[float] = []
+        for m in self._motors:
+            if m.state == _MotorState.OFF:
+                speeds.append(0.0)
+            elif m.state == _MotorState.STARTING:
+                speeds.append(mkm.MIN_SPIN_HZ)
+            else:
+                speeds.append(abs(mkm.half_period_to_spin_hz(m.cmd_half_period)))
+        cmd = tuple(speeds)
+        if cmd != self._rotor_cmd:
+            self._rotor_cmd = cmd
+            with self._lock:
+                self._vehicle.command_rotor_speeds_hz(cmd)
+
+    def _emit_due(self, t_ns: int) -> None:
+        for key in ("I", "M", "B", "C", "D", "3D"):
+            due = self._due_ns.get(key)
+            if due is None or due > t_ns:
+                continue
+            period = self._periods_ns[key]
+            self._emit(key)
+            due += period
+            if due <= t_ns:  # fell behind by more than one period: skip, do not burst
+                skipped = (t_ns - due) // period + 1
+                due += skipped * period
+                self._count("stream_slips", int(skipped))
+            self._due_ns[key] = due
+
+    def _emit(self, key: str) -> None:
+        if key == "I":
+            self._emit_imu()
+        elif key == "M":
+            self._emit_motors()
+        elif key == "B":
+            with self._lock:
+                volts = self._vehicle.battery_voltage_v()
+            self._send_tk3(mkm.BatteryMessage(self._next_seq("B"), volts))
+        elif key == "C":
+            self._send_tk3(mkm.MagMessage(self._next_seq("C"), self._mag_board_t()))
+        elif key == "D":
+            self._emit_debug()
+        elif key == "3D":
+            self._emit_data3d()
+
+    def _next_seq(self, key: str) -> int:
+        seq = self._seq[key]
+        self._seq[key] = (seq + 1) & 0xFF
+        return seq
+
+    def _emit_imu(self) -> None:
+        with self._lock:
+            reading = self._vehicle.read_imu()
+        axes = self.config.imu_axes
+        msg = mkm.ImuMessage(self._imu_total & 0xFF, axes.to_board(reading.accel_m_s2),
+                             axes.to_board(reading.gyro_rad_s))
+        altered = self._send_tk3(msg)
+        if self.config.record_truth:
+            self.sent_imu.append(SentImu(self._imu_total, self._sim_ns, msg, altered))
+        self._imu_total += 1
+        self._count("imu_sent")
+
+    def _emit_motors(self) -> None:
+        with self._lock:
+            speeds = self._vehicle.rotor_speeds_hz()
+            currents = self._vehicle.motor_currents_a()
+        seq = self._next_seq("M")
+        for i, m in enumerate(self._motors):
+            spinning = m.state == _MotorState.SPINNING
+            speed = speeds[i] if i < len(speeds) else 0.0
+            direction = -1.0 if m.cmd_half_period < 0 else 1.0
+            period = mkm.spin_hz_to_half_period(direction * speed) if speed > 0.0 else 0
+            throttle = round(min(1.0, speed / _MAX_SPEED_HZ_FOR_THROTTLE) * 1023)
+            current = currents[i] if i < len(currents) else 0.0
+            self._send_tk3(mkm.MotorMessage(seq, i + 1, m.emergency, spinning,
+                                            m.state == _MotorState.STARTING, period,
+                                            throttle if m.state != _MotorState.OFF else 0,
+                                            current))
+
+    def _mag_board_t(self) -> tuple[float, float, float]:
+        with self._lock:
+            pose = self._vehicle.true_pose()
+        w, x, y, z = pose.q_wb
+        # body = R_wb^T world, with R_wb from the body -> world quaternion
+        ex, ey, ez = _EARTH_FIELD_W_T
+        r = (
+            (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+            (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+            (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)),
+        )
+        body = tuple(r[0][i] * ex + r[1][i] * ey + r[2][i] * ez for i in range(3))
+        return self.config.imu_axes.to_board((body[0], body[1], body[2]))
+
+    # ---------------------------------------------------------------- stock firmware
+
+    def _handle_stock(self, frame: framing_stock.StockFrame) -> None:
+        if frame.address not in (framing_stock.Address.ANY, framing_stock.Address.FLIGHT_CTRL):
+            return
+        try:
+            msg = mkm.decode_stock_message(frame.cmd, frame.data)
+        except mkm.MalformedMessageError:
+            self._count("malformed_received")
+            return
+        if isinstance(msg, mkm.VersionRequest):
+            major, minor, patch = self.config.stock_version
+            self._send_stock(mkm.VersionInfo(major, minor, 11, 0xA5, patch, (0, 0), 25, 255, 0))
+        elif isinstance(msg, mkm.DebugRequest):
+            self._set_period("D", msg.interval_ms * 1_000_000)
+        elif isinstance(msg, mkm.Data3DRequest):
+            self._set_period("3D", msg.interval_ms * 1_000_000)
+        elif isinstance(msg, mkm.EngineTest):
+            # Raw 8-bit set-points; the emulated BLs map 0..255 linearly onto 0..100 Hz.
+            for m, sp in zip(self._motors, msg.setpoints, strict=False):
+                if sp:
+                    m.state = _MotorState.SPINNING
+                    m.cmd_half_period = mkm.spin_hz_to_half_period(sp / 255 * 100.0)
+                else:
+                    m.state = _MotorState.OFF
+            self._last_w_ns = self._sim_ns
+            self._apply_rotors()
+            self._send_stock(mkm.EngineTestAck())
+        elif isinstance(msg, mkm.ExternControl):
+            self._send_stock(mkm.ExternControlAck(msg.frame))
+
+    def _emit_debug(self) -> None:
+        with self._lock:
+            volts = self._vehicle.battery_voltage_v()
+            current = sum(self._vehicle.motor_currents_a())
+            speeds = self._vehicle.rotor_speeds_hz()
+        analog = [0] * 32
+        analog[9] = round(volts * 10)
+        analog[22] = round(current * 10)
+        for i in range(4):
+            analog[12 + i] = min(255, round(speeds[i] / 100.0 * 255)) if i < len(speeds) else 0
+        self._send_stock(mkm.DebugOut((0, 0), tuple(analog)))
+
+    def _emit_data3d(self) -> None:
+        with self._lock:
+            pose = self._vehicle.true_pose()
+        w, x, y, z = pose.q_wb
+        roll = math.degrees(math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)))
+        pitch = math.degrees(math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x)))))
+        yaw = math.degrees(math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))) % 360.0
+        self._send_stock(mkm.Data3D((pitch, roll, yaw), (0, 0, 0), 512))
+
+    # ---------------------------------------------------------------- output
+
+    def _send_tk3(self, msg: mkm.BoardMessage) -> bool:
+        return self._send(framing_tk3.encode_frame(msg.encode()))
+
+    def _send_stock(self, msg: mkm.StockMessage) -> bool:
+        return self._send(framing_stock.encode_frame(framing_stock.Address.FLIGHT_CTRL,
+                                                     msg.CMD, msg.payload()))
+
+    def _send(self, frame: bytes) -> bool:
+        """Queue one frame through the faulty wire; True if the wire altered it."""
+        faults = self.config.faults
+        altered = False
+        if faults.corrupt_prob or faults.drop_prob:
+            frame, altered = self._damage(frame)
+        self._count("frames_sent")
+        if altered:
+            self._count("frames_altered")
+        if faults.baud is None:
+            self._write(frame)
+            return altered
+        now = time.monotonic()
+        start = max(now, self._tx_busy_until)
+        done = start + len(frame) * 10.0 / faults.baud
+        if done - now > _TX_BACKLOG_S:
+            self._count("tx_overruns")
+            return altered
+        self._tx_busy_until = done
+        self._tx_queue.append((done, frame))
+        return altered
+
+    def _damage(self, frame: bytes) -> tuple[bytes, bool]:
+        faults, rng = self.config.faults, self._rng
+        out = bytearray()
+        altered = False
+        for byte in frame:
+            r = rng.random()
+            if r < faults.drop_prob:
+                self._count("bytes_dropped")
+                altered = True
+                continue
+            if r < faults.drop_prob + faults.corrupt_prob:
+                byte = (byte + rng.randrange(1, 256)) & 0xFF
+                self._count("bytes_corrupted")
+                altered = True
+            out.append(byte)
+        return bytes(out), altered
+
+    def _flush_tx(self, now: float) -> None:
+        while self._tx_queue and self._tx_queue[0][0] <= now:
+            self._write(self._tx_queue.popleft()[1])
+
+    def _write(self, data: bytes) -> None:
+        if self._stop.is_set():
+            return
+        with contextlib.suppress(OSError):
+            self._pty.write(data)
+
+    def _count(self, name: str, n: int = 1) -> None:
+        with self._stats_lock:
+            setattr(self._stats, name, getattr(self._stats, name) + n)
