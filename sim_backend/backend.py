@@ -1,0 +1,247 @@
+"""The emulated backend: one process that owns the simulated FAST-Hex and exposes its devices.
+
+- **flight-ctrl**: the emulated Flight-Ctrl (tk3) on a pty, driving the simulator's rotors and
+  reading its IMU model;
+- **servo**: the emulated MX-28T on a pty, geared to the simulator's tilt drive;
+- **mocap**: an emulated NatNet (Motive) server on UDP loopback streaming the simulator's pose
+  with the preset's noise, rate and latency.
+
+Time: the Flight-Ctrl emulator is the only thing that advances the physics (one IMU period per
+received ``w`` frame in ``lockstep``, the wall clock in ``realtime``). Every advance also lets the
+MoCap server publish the frames due at the new simulated time, *before* the Flight-Ctrl writes
+the IMU sample of that time: a ground station that drains its MoCap socket when it receives an
+IMU sample sees exactly the poses due by then, so lockstep flights are deterministic.
+
+Run as ``python -m sim_backend.backend --vehicle fasthex --disturbances paper-calibrated
+--start X Y Z --seed N --clock lockstep --link-dir DIR``. It prints one JSON line per device
+(``{"device": "flight-ctrl", "kind": "pty", "address": PATH}``) and then ``{"ready": true}``,
+and runs until SIGINT/SIGTERM, stdin closing, or the death of its parent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import ctypes
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal, Protocol
+
+from config import find_config
+from config.schema import load_config
+from controller.params import VEHICLE_SCHEMA, VehicleParams
+from sim_backend.disturbances import DISTURBANCES_SCHEMA, DisturbancePreset
+from sim_backend.emulators.dynamixel_p1 import EmulatedMX28
+from sim_backend.emulators.flightctrl import (
+    EmulatedFlightCtrl,
+    FlightCtrlEmulatorConfig,
+    WireFaults,
+)
+from sim_backend.emulators.natnet import NatNetEmulatorConfig, NatNetServer
+from sim_backend.simulator import FastHexSimulator
+from sim_backend.vehicle import EmulatedVehicle, ImuReading, PoseReading
+
+log = logging.getLogger(__name__)
+
+Vec3 = tuple[float, float, float]
+
+#: Present Position of the emulated servo at tilt 0 (where the mechanism was assembled).
+SERVO_ZERO_OFFSET_STEPS = 1024
+
+
+@dataclass(frozen=True)
+class BackendOptions:
+    vehicle: VehicleParams
+    preset: DisturbancePreset
+    start_pos_w_m: Vec3
+    seed: int = 1
+    clock: Literal["realtime", "lockstep"] = "lockstep"
+    link_dir: Path | None = None
+    wire_faults: WireFaults = field(default_factory=WireFaults)
+    watchdog_s: float = 0.25
+
+
+@dataclass(frozen=True)
+class DeviceAddress:
+    device: str
+    kind: Literal["pty", "udp"]
+    address: str
+
+
+class _Publisher(Protocol):
+    def publish_due(self, now_s: float) -> int: ...
+
+
+class _SteppedVehicle:
+    """The simulator as the emulators see it: each advance also publishes the MoCap frames due
+    at the new time. Implements :class:`EmulatedVehicle` by delegation."""
+
+    def __init__(self, sim: FastHexSimulator) -> None:
+        self.sim = sim
+        self.on_advance: list[_Publisher] = []
+
+    def now_s(self) -> float:
+        return self.sim.now_s()
+
+    def advance(self, dt_s: float) -> None:
+        self.sim.advance(dt_s)
+        now = self.sim.now_s()
+        for publisher in self.on_advance:
+            publisher.publish_due(now)
+
+    def command_rotor_speeds_hz(self, speeds_hz: Sequence[float]) -> None:
+        self.sim.command_rotor_speeds_hz(speeds_hz)
+
+    def rotor_speeds_hz(self) -> tuple[float, ...]:
+        return self.sim.rotor_speeds_hz()
+
+    def motor_currents_a(self) -> tuple[float, ...]:
+        return self.sim.motor_currents_a()
+
+    def read_imu(self) -> ImuReading:
+        return self.sim.read_imu()
+
+    def command_tilt_rad(self, tilt_rad: float) -> None:
+        self.sim.command_tilt_rad(tilt_rad)
+
+    def tilt_rad(self) -> float:
+        return self.sim.tilt_rad()
+
+    def true_pose(self) -> PoseReading:
+        return self.sim.true_pose()
+
+    def battery_voltage_v(self) -> float:
+        return self.sim.battery_voltage_v()
+
+
+class EmulatedVehicleBackend:
+    """Builds and runs the simulator and its three emulated devices (see module docstring)."""
+
+    def __init__(self, opts: BackendOptions) -> None:
+        self.opts = opts
+        p = opts.preset
+        self.sim = FastHexSimulator(opts.vehicle, p, seed=opts.seed,
+                                    start_pos_w_m=opts.start_pos_w_m)
+        self.vehicle = _SteppedVehicle(self.sim)
+        assert isinstance(self.vehicle, EmulatedVehicle)
+        self.lock = threading.Lock()
+        link = opts.link_dir
+        self.flight_ctrl = EmulatedFlightCtrl(
+            self.vehicle, lock=self.lock,
+            link_path=link / "flight-ctrl" if link else None,
+            config=FlightCtrlEmulatorConfig(clock=opts.clock, faults=opts.wire_faults,
+                                            watchdog_s=opts.watchdog_s),
+        )
+        self.servo = EmulatedMX28(
+            self.vehicle, lock=self.lock, link_path=link / "servo" if link else None,
+            gear_ratio=opts.vehicle.tilt.worm_ratio, zero_offset_steps=SERVO_ZERO_OFFSET_STEPS,
+        )
+        self.mocap = NatNetServer(
+            self.vehicle,
+            NatNetEmulatorConfig(
+                command_port=0,
+                rate_hz=min(max(p.mocap_rate_hz, 100.0), 360.0),
+                pos_noise_m=p.mocap_pos_noise_m,
+                rot_noise_rad=p.mocap_att_noise_rad,
+                latency_s=p.mocap_latency_s,
+                occlusion_probability=p.mocap_dropout_prob,
+                occlusion_frames=1,
+                seed=opts.seed,
+            ),
+            lock=threading.Lock(),
+        )
+        self.vehicle.on_advance.append(self.mocap)
+        self._started = False
+
+    def start(self) -> list[DeviceAddress]:
+        self.mocap.start(realtime=False)
+        self.servo.start()
+        self.flight_ctrl.start()
+        self._started = True
+        return self.addresses()
+
+    def addresses(self) -> list[DeviceAddress]:
+        return [
+            DeviceAddress("flight-ctrl", "pty", self.flight_ctrl.path),
+            DeviceAddress("servo", "pty", self.servo.path),
+            DeviceAddress("mocap", "udp", f"127.0.0.1:{self.mocap.command_port}"),
+        ]
+
+    def stop(self) -> None:
+        for stop in (self.flight_ctrl.stop, self.servo.close, self.mocap.close):
+            with contextlib.suppress(Exception):
+                stop()
+
+
+def _die_with_parent() -> None:
+    """Linux: get SIGTERM when the parent dies (kill -9 included)."""
+    if not sys.platform.startswith("linux"):
+        return
+    with contextlib.suppress(OSError, AttributeError):
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        pr_set_pdeathsig = 1
+        libc.prctl(pr_set_pdeathsig, signal.SIGTERM)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m sim_backend.backend",
+                                 description="Run the emulated FAST-Hex and its devices.")
+    ap.add_argument("--vehicle", default="fasthex")
+    ap.add_argument("--disturbances", default="paper-calibrated")
+    ap.add_argument("--start", nargs=3, type=float, default=(0.0, 0.0, 0.1),
+                    metavar=("X", "Y", "Z"), help="start position of O_B (m, world)")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--clock", choices=("realtime", "lockstep"), default="lockstep")
+    ap.add_argument("--link-dir", type=Path, default=None,
+                    help="directory for stable device symlinks")
+    ap.add_argument("--corrupt-prob", type=float, default=0.0,
+                    help="byte corruption probability on the Flight-Ctrl link")
+    ap.add_argument("--watchdog-s", type=float, default=0.25)
+    args = ap.parse_args(argv)
+    parent = os.getppid()
+    _die_with_parent()
+    logging.basicConfig(level=logging.WARNING, stream=sys.stderr,
+                        format="emulator %(levelname)s %(name)s: %(message)s")
+    vehicle = load_config(find_config("vehicles", args.vehicle), VehicleParams,
+                          schema=VEHICLE_SCHEMA)
+    preset = load_config(find_config("disturbances", args.disturbances), DisturbancePreset,
+                         schema=DISTURBANCES_SCHEMA)
+    backend = EmulatedVehicleBackend(BackendOptions(
+        vehicle=vehicle, preset=preset, start_pos_w_m=(args.start[0], args.start[1], args.start[2]),
+        seed=args.seed, clock=args.clock, link_dir=args.link_dir,
+        wire_faults=WireFaults(corrupt_prob=args.corrupt_prob, seed=args.seed),
+        watchdog_s=args.watchdog_s,
+    ))
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        for dev in backend.start():
+            print(json.dumps({"device": dev.device, "kind": dev.kind, "address": dev.address}),
+                  flush=True)
+        print(json.dumps({"ready": True, "t_s": backend.sim.now_s()}), flush=True)
+
+        def _watch_stdin() -> None:  # the parent closing our stdin also ends us
+            with contextlib.suppress(Exception):
+                sys.stdin.read()
+            stop.set()
+
+        if not sys.stdin.isatty():
+            threading.Thread(target=_watch_stdin, daemon=True).start()
+        while not stop.wait(0.5):
+            if os.getppid() != parent:
+                break
+    finally:
+        backend.stop()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
