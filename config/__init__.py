@@ -15,7 +15,7 @@ from config.schema import ConfigError
 
 __all__ = ["ConfigError", "available", "config_root", "find_config"]
 
-KINDS = ("vehicles", "missions", "sessions")
+KINDS = ("vehicles", "missions", "sessions", "disturbances")
 
 
 def config_root() -> Path:

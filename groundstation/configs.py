@@ -25,3 +25,15 @@ def load_mission(name_or_path: str | Path) -> MissionSpec:
     """A shipped mission by name (``exp1-hover-tilt-steps``) or a mission YAML file."""
     return load_config(find_config("missions", name_or_path), MissionSpec,
                        schema=MISSION_SCHEMA, versions=(1,))
+
+
+# Simulator disturbance presets (appended).
+from sim_backend.disturbances import DISTURBANCES_SCHEMA, DisturbancePreset  # noqa: E402
+
+DEFAULT_DISTURBANCES = "paper-calibrated"
+
+
+def load_disturbances(name_or_path: str | Path = DEFAULT_DISTURBANCES) -> DisturbancePreset:
+    """A simulator disturbance preset by name (``ideal``, ``paper-calibrated``) or file."""
+    return load_config(find_config("disturbances", name_or_path), DisturbancePreset,
+                       schema=DISTURBANCES_SCHEMA, versions=(1,))

@@ -1,0 +1,170 @@
+"""The flight record: one fixed-size binary row per control tick, written as the flight goes.
+
+File layout (little-endian)::
+
+    8 bytes   magic  b"FHXREC\\x00\\x01"
+    4 bytes   uint32 N, length of the JSON header
+    N bytes   UTF-8 JSON header: {"format": "fasthex.record", "version": 1,
+              "dtype": numpy descr of one row, "row_bytes": int, "metadata": {...}}
+    rows      back to back, each ``row_bytes`` long, fields as in :data:`RECORD_DTYPE`
+
+Rows are buffered and written with one ``os.write`` every ``flush_rows`` ticks (50 = 100 ms at
+500 Hz), so a crash or ``kill -9`` loses at most the last 100 ms; the reader ignores a trailing
+partial row. Units and frames are in the field names: ``*_w_*`` world (z up), ``*_b_*`` body,
+``q_*`` Hamilton quaternions (w, x, y, z) body/reference/desired -> world; ``*_ref_*`` the
+mission's reference, ``q_wd`` the controller's desired attitude R_d, ``pos_w_m``/``q_wb``/... the
+true state (simulation) or best estimate (hardware), ``est_*`` what the controller was fed.
+``alpha_ref_rad`` is NaN while the tilt planner is in ``auto`` mode. ``sat_mask`` has bit i set
+when rotor i+1's command was clamped; ``segment`` is the mission segment index and ``measured``
+marks the experiment proper (not takeoff/landing).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+MAGIC = b"FHXREC\x00\x01"
+FORMAT = "fasthex.record"
+VERSION = 1
+DEFAULT_FLUSH_ROWS = 50
+
+RECORD_DTYPE = np.dtype([
+    ("t_s", "<f8"),
+    ("segment", "<i2"),
+    ("measured", "u1"),
+    ("sat_mask", "u1"),
+    ("landed", "u1"),
+    ("pos_ref_w_m", "<f4", (3,)),
+    ("vel_ref_w_m_s", "<f4", (3,)),
+    ("acc_ref_w_m_s2", "<f4", (3,)),
+    ("q_wr", "<f4", (4,)),
+    ("alpha_ref_rad", "<f4"),
+    ("alpha_cmd_rad", "<f4"),
+    ("alpha_rad", "<f4"),
+    ("q_wd", "<f4", (4,)),
+    ("pos_w_m", "<f4", (3,)),
+    ("vel_w_m_s", "<f4", (3,)),
+    ("q_wb", "<f4", (4,)),
+    ("omega_b_rad_s", "<f4", (3,)),
+    ("est_pos_w_m", "<f4", (3,)),
+    ("est_q_wb", "<f4", (4,)),
+    ("spin_cmd_hz", "<f4", (6,)),
+    ("spin_hz", "<f4", (6,)),
+    ("thrust_n", "<f4", (6,)),
+    ("f_r_w_n", "<f4", (3,)),
+    ("u_f_b_n", "<f4", (3,)),
+    ("u_tau_b_n_m", "<f4", (3,)),
+    ("r_xy_n", "<f4"),
+    ("theta_rad", "<f4"),
+    ("eta_f", "<f4"),
+])
+
+Rows = npt.NDArray[np.void]
+
+
+class RecordFormatError(ValueError):
+    """The file is not a flight record this version can read."""
+
+
+@dataclass(frozen=True)
+class FlightRecord:
+    """A flight record in memory: the header's metadata and the rows (structured array)."""
+
+    metadata: dict[str, Any]
+    rows: Rows
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+
+class RecordWriter:
+    """Collects rows; with a path, appends them to the file every ``flush_rows`` rows.
+
+    ``append`` takes one tuple in :data:`RECORD_DTYPE` field order (3-vectors as tuples).
+    Rows are also kept in memory unless ``keep_in_memory`` is false.
+    """
+
+    def __init__(self, path: str | Path | None, metadata: dict[str, Any] | None = None, *,
+                 flush_rows: int = DEFAULT_FLUSH_ROWS, keep_in_memory: bool = True) -> None:
+        self.path = Path(path) if path is not None else None
+        self.metadata = dict(metadata or {})
+        self.flush_rows = max(1, flush_rows)
+        self.keep_in_memory = keep_in_memory
+        self._pending: list[tuple[Any, ...]] = []
+        self._kept: list[Rows] = []
+        self._fd: int | None = None
+        self.rows_written = 0
+        if self.path is not None:
+            header = json.dumps({"format": FORMAT, "version": VERSION,
+                                 "dtype": RECORD_DTYPE.descr,
+                                 "row_bytes": RECORD_DTYPE.itemsize,
+                                 "metadata": self.metadata}).encode()
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+            os.write(self._fd, MAGIC + struct.pack("<I", len(header)) + header)
+
+    def append(self, row: tuple[Any, ...]) -> None:
+        self._pending.append(row)
+        if len(self._pending) >= self.flush_rows:
+            self.flush()
+
+    def flush(self) -> None:
+        if not self._pending:
+            return
+        block = np.array(self._pending, dtype=RECORD_DTYPE)
+        self._pending = []
+        if self._fd is not None:
+            data = block.tobytes()
+            view = memoryview(data)
+            while view:
+                n = os.write(self._fd, view)
+                view = view[n:]
+        if self.keep_in_memory:
+            self._kept.append(block)
+        self.rows_written += len(block)
+
+    def close(self) -> FlightRecord:
+        """Flush, close the file and return what was recorded (empty rows if not kept)."""
+        self.flush()
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+        rows = np.concatenate(self._kept) if self._kept else np.zeros(0, RECORD_DTYPE)
+        return FlightRecord(self.metadata, rows)
+
+    def __enter__(self) -> RecordWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def read_record(path: str | Path) -> FlightRecord:
+    """Read a record file (also one still being written, or cut short by a crash)."""
+    data = Path(path).read_bytes()
+    if len(data) < 12 or data[:8] != MAGIC:
+        raise RecordFormatError(f"{path}: not a fasthex flight record (bad magic)")
+    (n,) = struct.unpack("<I", data[8:12])
+    try:
+        header = json.loads(data[12:12 + n].decode())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise RecordFormatError(f"{path}: corrupt record header ({exc})") from None
+    if not isinstance(header, dict) or header.get("format") != FORMAT \
+            or header.get("version") != VERSION:
+        raise RecordFormatError(f"{path}: unsupported record format/version")
+    try:
+        dtype = np.dtype([(f[0], f[1], tuple(f[2])) if len(f) > 2 else (f[0], f[1])
+                          for f in header["dtype"]])
+    except (TypeError, ValueError, KeyError) as exc:
+        raise RecordFormatError(f"{path}: bad row description ({exc})") from None
+    body = data[12 + n:]
+    count = len(body) // dtype.itemsize
+    rows = np.frombuffer(body[:count * dtype.itemsize], dtype=dtype)
+    return FlightRecord(dict(header.get("metadata", {})), rows)

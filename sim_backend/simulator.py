@@ -1,0 +1,371 @@
+"""The flying FAST-Hex: rigid-body physics with what the controller's model leaves out.
+
+Newton-Euler in the world frame (z up) for position and body frame for rotation::
+
+    m pdd   = R_B F_b + F_ext - m g e3
+    J wd    = tau_b - w x (J w + h)
+    qd      = 1/2 q (x) (0, w)
+
+integrated with a fixed-step RK4 at ``physics_rate_hz`` (default 1 kHz, twice the controller
+rate); the quaternion is renormalised after each step. The body wrench is summed per propeller
+from first principles, not from the controller's allocation matrix:
+
+- propeller i sits at ``l Rz((i-1) pi/3) e1``; its axis is ``Rz((i-1) pi/3) Rx(alpha_i) Ry(beta_i)
+  e3`` where alpha_i is the *actual* tilt of that propeller through the Cardan chain
+  (:func:`cardan_tilts`, paper eq. Cardan with the index fixed; nominal ``+-alpha`` when the chain
+  is off) and beta_i a fixed random misalignment (paper-notes item 1);
+- thrust ``c_f,i w_i^2`` along the axis with a per-rotor spread of c_f; drag torque
+  ``(-1)^i c_tau f_i`` along the axis; arm moment ``p_i x f_i``;
+- rotor speeds follow their set-points with a first-order lag (exact discretisation);
+- the servo moves the synchronised tilt towards its goal at the tilt rate limit;
+- gyroscopic effects of the spinning rotors: ``w x h`` in Euler's equation and the reaction
+  ``-dh/dt`` to spinning up/down and to tilting (h_i = I_r 2 pi w_i s_i axis_i);
+- external forces: a tether pulling towards an anchor point and a 3-axis Ornstein-Uhlenbeck
+  force (slowly varying unmodelled aerodynamics, paper-notes);
+- ground contact: the vehicle starts at rest on its landing gear (``ground_height_m`` is the
+  height of O_B when resting). It stays put while the net vertical force pushes it down, lifts
+  off when the rotors carry it, and on touchdown it comes to rest level (inelastic contact; the
+  touchdown speeds are recorded).
+
+All random quantities come from one seeded ``numpy`` generator: two simulators with the same
+parameters and seed produce the same flight. The per-step code runs on Python floats.
+
+Besides its fast in-process API (:meth:`state`, :meth:`specific_force_b`, :meth:`poll_mocap`)
+the simulator implements :class:`sim_backend.vehicle.EmulatedVehicle` for the device emulators.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from controller.model import CARDAN_JOINTS_PER_PROPELLER
+from controller.params import VehicleParams
+from controller.reference import IDENTITY_Q, Quat, Vec3, VehicleState, quat_to_rot
+from sim_backend.disturbances import DisturbancePreset
+from sim_backend.sensors import ImuModel, MocapModel, NormalStream
+from sim_backend.vehicle import ImuReading, PoseReading
+
+TWO_PI = 2.0 * math.pi
+N_ROTORS = 6
+
+
+def cardan_tilts(alpha_des_rad: float, worm_ratio: float, cos_bend: float) -> list[float]:
+    """Signed actual tilts of the six propellers (plain-float twin of
+    :func:`controller.model.cardan_tilts_rad`)."""
+    g = alpha_des_rad / worm_ratio
+    stages = [g]
+    for _ in range(max(CARDAN_JOINTS_PER_PROPELLER)):
+        out = math.atan2(math.sin(g), cos_bend * math.cos(g))
+        out += TWO_PI * round((g - out) / TWO_PI)
+        stages.append(out)
+        g = out
+    return [worm_ratio * (1.0 if i % 2 == 0 else -1.0) * stages[n]
+            for i, n in enumerate(CARDAN_JOINTS_PER_PROPELLER)]
+
+
+def _yaw_only(q: Quat) -> Quat:
+    w, x, y, z = q
+    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    return (math.cos(0.5 * yaw), 0.0, 0.0, math.sin(0.5 * yaw))
+
+
+class FastHexSimulator:
+    """The simulated FAST-Hex. Not thread-safe: one owner (or calls under one lock)."""
+
+    def __init__(self, params: VehicleParams, preset: DisturbancePreset, *, seed: int = 0,
+                 start_pos_w_m: Vec3 = (0.0, 0.0, 0.1), start_q_wb: Quat = IDENTITY_Q,
+                 ground_height_m: float | None = None) -> None:
+        self.params = params
+        self.preset = preset
+        self.seed = seed
+        rng = np.random.default_rng(seed)
+        self._normal = NormalStream(np.random.default_rng(rng.integers(1 << 62)))
+        self.imu = ImuModel(preset, np.random.default_rng(rng.integers(1 << 62)))
+        self.mocap = MocapModel(preset, np.random.default_rng(rng.integers(1 << 62)))
+
+        self._m = params.mass_kg
+        self._g = params.gravity_m_s2
+        self._j = params.inertia_diag_kg_m2
+        l_m = params.geometry.arm_length_m
+        self._yaw = [i * math.pi / 3.0 for i in range(N_ROTORS)]
+        self._pos = [(l_m * math.cos(y), l_m * math.sin(y), 0.0) for y in self._yaw]
+        ccw = 1.0 if params.rotors.first_rotor_ccw else -1.0
+        #: +1 where the propeller spins about +axis; the drag torque opposes the spin
+        self._spin_sign = [ccw * (1.0 if i % 2 == 0 else -1.0) for i in range(N_ROTORS)]
+        self._c_tau = params.rotors.drag_coeff_m
+        spread = preset.thrust_coeff_spread
+        c_f = params.rotors.thrust_coeff_n_per_hz2
+        #: actual per-rotor thrust coefficients (N/Hz^2)
+        self.c_f_actual = [float(c_f * (1.0 + spread * u))
+                           for u in rng.uniform(-1.0, 1.0, N_ROTORS)]
+        #: fixed misalignment of each propeller about its arm's y axis (rad)
+        self.misalignment_rad = [float(b) for b in
+                                 rng.normal(0.0, math.radians(preset.misalignment_deg), N_ROTORS)]
+        self._i_r = preset.rotor_inertia_kg_m2
+        self._tau_rotor = preset.rotor_time_constant_s
+        self._worm = params.tilt.worm_ratio
+        self._cos_bend = math.cos(math.radians(params.tilt.cardan_bend_deg))
+        self._cardan = preset.cardan_chain
+        self._tilt_rate = math.radians(params.tilt.max_rate_deg_s)
+        self._tilt_max = math.radians(params.tilt.mechanical_limit_deg)
+        # the preset gives the rms of the force vector; each axis carries a third of the power
+        self._ou_rms = preset.ou_force_rms_n / math.sqrt(3.0)
+        self._ou_tau = preset.ou_force_tau_s
+        self._tether_n = preset.tether_force_n
+        self._anchor = preset.tether_anchor_w_m
+
+        self._dt = 1.0 / preset.physics_rate_hz
+        self._t = 0.0
+        self.ground_height_m = start_pos_w_m[2] if ground_height_m is None else ground_height_m
+        q0 = _yaw_only(start_q_wb)
+        self._x = [start_pos_w_m[0], start_pos_w_m[1], self.ground_height_m, 0.0, 0.0, 0.0,
+                   q0[0], q0[1], q0[2], q0[3], 0.0, 0.0, 0.0]
+        self.landed = True
+        #: vertical speeds (m/s, positive down) at each touchdown
+        self.touchdown_speeds_m_s: list[float] = []
+        self._w = [0.0] * N_ROTORS
+        self._w_cmd = [0.0] * N_ROTORS
+        self._servo = 0.0
+        self._servo_goal = 0.0
+        self._ou = [0.0, 0.0, 0.0]
+        self._fb: Vec3 = (0.0, 0.0, 0.0)
+        self._fext: Vec3 = (0.0, 0.0, 0.0)
+        self._set_tilts(0.0)
+
+    # -- geometry of the propellers ---------------------------------------------------------
+    def _set_tilts(self, servo_rad: float) -> list[float]:
+        if self._cardan:
+            tilts = cardan_tilts(servo_rad, self._worm, self._cos_bend)
+        else:
+            tilts = [servo_rad if i % 2 == 0 else -servo_rad for i in range(N_ROTORS)]
+        axes, daxes, moments = [], [], []
+        for i in range(N_ROTORS):
+            sa, ca = math.sin(tilts[i]), math.cos(tilts[i])
+            sb, cb = math.sin(self.misalignment_rad[i]), math.cos(self.misalignment_rad[i])
+            sy, cy = math.sin(self._yaw[i]), math.cos(self._yaw[i])
+            lx, ly, lz = sb, -sa * cb, ca * cb          # Rx(a) Ry(b) e3
+            dx, dy, dz = 0.0, -ca * cb, -sa * cb        # d/da
+            ax = (cy * lx - sy * ly, sy * lx + cy * ly, lz)
+            axes.append(ax)
+            daxes.append((cy * dx - sy * dy, sy * dx + cy * dy, dz))
+            px, py, pz = self._pos[i]
+            d = -self._spin_sign[i] * self._c_tau
+            moments.append((py * ax[2] - pz * ax[1] + d * ax[0],
+                            pz * ax[0] - px * ax[2] + d * ax[1],
+                            px * ax[1] - py * ax[0] + d * ax[2]))
+        self._tilts = tilts
+        self._axes, self._daxes, self._moments = axes, daxes, moments
+        return tilts
+
+    def propeller_tilts_rad(self) -> tuple[float, ...]:
+        """The six actual signed propeller tilts (rad)."""
+        return tuple(self._tilts)
+
+    # -- physics -----------------------------------------------------------------------------
+    def _substep(self, h: float) -> None:
+        # servo: rate-limited towards the goal; per-propeller tilt rates for the gyroscopic term
+        tilt_rates = None
+        if self._servo != self._servo_goal:
+            step = self._tilt_rate * h
+            d = self._servo_goal - self._servo
+            self._servo += step if d > step else (-step if d < -step else d)
+            old = self._tilts
+            new = self._set_tilts(self._servo)
+            tilt_rates = [(new[i] - old[i]) / h for i in range(N_ROTORS)]
+
+        # rotors: first-order lag, exact over the step
+        w, cmd = self._w, self._w_cmd
+        if self._tau_rotor > 0.0:
+            a = 1.0 - math.exp(-h / self._tau_rotor)
+            wdot = [(cmd[i] - w[i]) / self._tau_rotor for i in range(N_ROTORS)]
+            w = [w[i] + (cmd[i] - w[i]) * a for i in range(N_ROTORS)]
+        else:
+            wdot = [0.0] * N_ROTORS
+            w = list(cmd)
+        self._w = w
+
+        # body wrench, propeller by propeller
+        fx = fy = fz = tx = ty = tz = hx = hy = hz = 0.0
+        axes, moments, c_f = self._axes, self._moments, self.c_f_actual
+        i_r = self._i_r
+        for i in range(N_ROTORS):
+            f = c_f[i] * w[i] * w[i]
+            ax, mo = axes[i], moments[i]
+            fx += f * ax[0]
+            fy += f * ax[1]
+            fz += f * ax[2]
+            tx += f * mo[0]
+            ty += f * mo[1]
+            tz += f * mo[2]
+            if i_r > 0.0:
+                k = i_r * TWO_PI * self._spin_sign[i]
+                kw = k * w[i]
+                hx += kw * ax[0]
+                hy += kw * ax[1]
+                hz += kw * ax[2]
+                # reaction to dh/dt: spin-up along the axis, tilting turns the axis
+                kd = k * wdot[i]
+                tx -= kd * ax[0]
+                ty -= kd * ax[1]
+                tz -= kd * ax[2]
+                if tilt_rates is not None:
+                    da = self._daxes[i]
+                    kt = kw * tilt_rates[i]
+                    tx -= kt * da[0]
+                    ty -= kt * da[1]
+                    tz -= kt * da[2]
+        self._fb = (fx, fy, fz)
+
+        # external forces (world)
+        x = self._x
+        ex = ey = ez = 0.0
+        if self._tether_n > 0.0:
+            dx, dy, dz = (self._anchor[0] - x[0], self._anchor[1] - x[1],
+                          self._anchor[2] - x[2])
+            n = math.sqrt(dx * dx + dy * dy + dz * dz)
+            if n > 1e-9:
+                ex, ey, ez = (self._tether_n * dx / n, self._tether_n * dy / n,
+                              self._tether_n * dz / n)
+        if self._ou_rms > 0.0:
+            phi = math.exp(-h / self._ou_tau)
+            s = self._ou_rms * math.sqrt(1.0 - phi * phi)
+            ou, nrm = self._ou, self._normal
+            ou[0] = phi * ou[0] + s * nrm()
+            ou[1] = phi * ou[1] + s * nrm()
+            ou[2] = phi * ou[2] + s * nrm()
+            ex, ey, ez = ex + ou[0], ey + ou[1], ez + ou[2]
+        self._fext = (ex, ey, ez)
+
+        m, g = self._m, self._g
+        if self.landed:
+            r = quat_to_rot((x[6], x[7], x[8], x[9]))
+            lift = r[6] * fx + r[7] * fy + r[8] * fz + ez - m * g
+            if lift <= 0.0:
+                self._advance_time(h)
+                return
+            self.landed = False
+
+        jx, jy, jz = self._j
+        inv_m = 1.0 / m
+
+        def deriv(s: list[float]) -> list[float]:
+            qw, qx, qy, qz = s[6], s[7], s[8], s[9]
+            wx, wy, wz = s[10], s[11], s[12]
+            # R (body -> world) applied to F_b
+            xx, yy, zz = qx * qx, qy * qy, qz * qz
+            xy, xz, yz = qx * qy, qx * qz, qy * qz
+            wqx, wqy, wqz = qw * qx, qw * qy, qw * qz
+            ax_ = ((1.0 - 2.0 * (yy + zz)) * fx + 2.0 * (xy - wqz) * fy + 2.0 * (xz + wqy) * fz
+                   + ex) * inv_m
+            ay_ = (2.0 * (xy + wqz) * fx + (1.0 - 2.0 * (xx + zz)) * fy + 2.0 * (yz - wqx) * fz
+                   + ey) * inv_m
+            az_ = (2.0 * (xz - wqy) * fx + 2.0 * (yz + wqx) * fy + (1.0 - 2.0 * (xx + yy)) * fz
+                   + ez) * inv_m - g
+            lx, ly, lz = jx * wx + hx, jy * wy + hy, jz * wz + hz
+            return [s[3], s[4], s[5], ax_, ay_, az_,
+                    0.5 * (-qx * wx - qy * wy - qz * wz),
+                    0.5 * (qw * wx + qy * wz - qz * wy),
+                    0.5 * (qw * wy - qx * wz + qz * wx),
+                    0.5 * (qw * wz + qx * wy - qy * wx),
+                    (tx - (wy * lz - wz * ly)) / jx,
+                    (ty - (wz * lx - wx * lz)) / jy,
+                    (tz - (wx * ly - wy * lx)) / jz]
+
+        hh = 0.5 * h
+        k1 = deriv(x)
+        k2 = deriv([a + hh * b for a, b in zip(x, k1, strict=True)])
+        k3 = deriv([a + hh * b for a, b in zip(x, k2, strict=True)])
+        k4 = deriv([a + h * b for a, b in zip(x, k3, strict=True)])
+        h6 = h / 6.0
+        x = [a + h6 * (b1 + 2.0 * (b2 + b3) + b4)
+             for a, b1, b2, b3, b4 in zip(x, k1, k2, k3, k4, strict=True)]
+        qn = 1.0 / math.sqrt(x[6] * x[6] + x[7] * x[7] + x[8] * x[8] + x[9] * x[9])
+        x[6] *= qn
+        x[7] *= qn
+        x[8] *= qn
+        x[9] *= qn
+        if x[2] < self.ground_height_m:
+            self.touchdown_speeds_m_s.append(-x[5])
+            q = _yaw_only((x[6], x[7], x[8], x[9]))
+            x = [x[0], x[1], self.ground_height_m, 0.0, 0.0, 0.0, q[0], q[1], q[2], q[3],
+                 0.0, 0.0, 0.0]
+            self.landed = True
+        self._x = x
+        self._advance_time(h)
+
+    def _advance_time(self, h: float) -> None:
+        self._t += h
+        x = self._x
+        self.mocap.maybe_capture(self._t, (x[0], x[1], x[2]), (x[6], x[7], x[8], x[9]))
+
+    # -- fast in-process API -----------------------------------------------------------------
+    def state(self) -> VehicleState:
+        """The true state."""
+        x = self._x
+        return VehicleState((x[0], x[1], x[2]), (x[3], x[4], x[5]), (x[6], x[7], x[8], x[9]),
+                            (x[10], x[11], x[12]))
+
+    def specific_force_b(self) -> Vec3:
+        """What an ideal accelerometer reads (m/s^2, body): (F_b + R^T F_ext) / m, or the
+        ground's reaction when resting."""
+        x = self._x
+        r = quat_to_rot((x[6], x[7], x[8], x[9]))
+        if self.landed:
+            g = self._g
+            return (r[6] * g, r[7] * g, r[8] * g)
+        fb, fe, m = self._fb, self._fext, self._m
+        return ((fb[0] + r[0] * fe[0] + r[3] * fe[1] + r[6] * fe[2]) / m,
+                (fb[1] + r[1] * fe[0] + r[4] * fe[1] + r[7] * fe[2]) / m,
+                (fb[2] + r[2] * fe[0] + r[5] * fe[1] + r[8] * fe[2]) / m)
+
+    def external_force_w_n(self) -> Vec3:
+        """Tether + OU force of the last step (world, N)."""
+        return self._fext
+
+    def poll_mocap(self) -> list[PoseReading]:
+        """MoCap frames that have arrived by now (capture-time stamped)."""
+        return self.mocap.poll(self._t)
+
+    # -- EmulatedVehicle ---------------------------------------------------------------------
+    def now_s(self) -> float:
+        return self._t
+
+    def advance(self, dt_s: float) -> None:
+        if dt_s <= 0.0:
+            return
+        n = max(1, math.ceil(dt_s / self._dt - 1e-9))
+        h = dt_s / n
+        for _ in range(n):
+            self._substep(h)
+
+    def command_rotor_speeds_hz(self, speeds_hz: Sequence[float]) -> None:
+        if len(speeds_hz) != N_ROTORS:
+            raise ValueError(f"expected {N_ROTORS} rotor speeds, got {len(speeds_hz)}")
+        self._w_cmd = [max(0.0, float(s)) for s in speeds_hz]
+
+    def rotor_speeds_hz(self) -> tuple[float, ...]:
+        return tuple(self._w)
+
+    def motor_currents_a(self) -> tuple[float, ...]:
+        # ~0.2 A idle, ~8 A at 100 Hz for a 12" propeller on an MK3638: cubic in speed
+        return tuple(0.2 * (s > 0.5) + 8.0 * (s / 100.0) ** 3 for s in self._w)
+
+    def read_imu(self) -> ImuReading:
+        x = self._x
+        return self.imu.sample(self._t, (x[10], x[11], x[12]), self.specific_force_b())
+
+    def command_tilt_rad(self, tilt_rad: float) -> None:
+        self._servo_goal = min(max(float(tilt_rad), 0.0), self._tilt_max)
+
+    def tilt_rad(self) -> float:
+        return self._servo
+
+    def true_pose(self) -> PoseReading:
+        x = self._x
+        return PoseReading(self._t, (x[0], x[1], x[2]), (x[6], x[7], x[8], x[9]))
+
+    def battery_voltage_v(self) -> float:
+        return 16.4 - 0.02 * sum(self.motor_currents_a())
