@@ -1,0 +1,125 @@
+"""``fasthex simulate``: fly a mission in the in-process simulator, faster than real time.
+
+The controller is fed the simulator's true state plus the preset's estimation noise (the seam
+for the UKF: ``sim_backend.closed_loop.StateSource``). Prints a summary table per phase (or, with
+``--json``, one JSON object whose keys carry their units: ``_mm``, ``_deg``, ``_hz``, ``_s``,
+``_frac``) and optionally writes the flight record (``--log``, format in
+:mod:`groundstation.record`).
+
+JSON keys: ``mission``, ``vehicle``, ``preset``, ``seed``, ``sim_time_s``, ``wall_time_s``,
+``realtime_factor`` (simulated seconds per wall second), ``touchdowns``,
+``max_touchdown_speed_m_s``, and for each phase ``all`` / ``udt`` / ``mdt``:
+``<phase>_ticks``, ``<phase>_duration_s``, ``<phase>_pos_err_mean_mm``,
+``<phase>_pos_err_max_mm``, ``<phase>_{roll,pitch,yaw}_err_mean_deg``,
+``<phase>_rd_dev_mean_deg``, ``<phase>_rd_dev_max_deg``, ``<phase>_inner_err_mean_deg``,
+``<phase>_spin_min_hz``, ``<phase>_spin_max_hz``, ``<phase>_spin_saturated_frac``,
+``<phase>_internal_force_loss_mean`` (1 - eta_f); ``all_spin_within_limits`` (1 or 0).
+Phases as in :mod:`groundstation.metrics`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from typing import Any
+
+NAME = "simulate"
+HELP = "fly a mission in the in-process simulator and print tracking metrics"
+
+DEFAULT_MISSION = "exp1-hover-tilt-steps"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("mission", nargs="?", default=DEFAULT_MISSION,
+                        help=f"mission name or YAML file (default {DEFAULT_MISSION})")
+    parser.add_argument("--vehicle", default="fasthex", help="vehicle name or YAML file")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument("--preset", default="paper-calibrated",
+                        help="disturbance preset name or YAML file (ideal, paper-calibrated)")
+    parser.add_argument("--duration", type=float, default=None, metavar="S",
+                        help="stop after S simulated seconds (default: the whole mission)")
+    parser.add_argument("--tilt-deg", type=float, default=None, metavar="DEG",
+                        help="fly at this constant tilt instead of the mission's alpha profile")
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--log", default=None, metavar="FILE", help="write the flight record")
+
+
+def simulate(args: argparse.Namespace) -> dict[str, Any]:
+    """Run the flight described by ``args``; return the summary dictionary."""
+    from controller.missions import Mission
+    from groundstation.configs import load_disturbances, load_mission, load_vehicle
+    from groundstation.metrics import flight_metrics
+    from groundstation.record import RecordWriter
+    from sim_backend.closed_loop import fly_mission
+
+    params = load_vehicle(args.vehicle)
+    mission = Mission(load_mission(args.mission))
+    preset = load_disturbances(args.preset)
+    if args.duration is not None and args.duration <= 0.0:
+        from groundstation.cli import UserError
+        raise UserError(f"--duration must be positive, got {args.duration}")
+    tilt = None if args.tilt_deg is None else math.radians(args.tilt_deg)
+    writer = RecordWriter(args.log, {"mission": mission.name, "vehicle": params.name,
+                                     "preset": preset.name, "seed": args.seed})
+    try:
+        result = fly_mission(params, mission, preset, seed=args.seed, sink=writer,
+                             duration_s=args.duration, tilt_override_rad=tilt)
+    finally:
+        record = writer.close()
+    out: dict[str, Any] = {
+        "mission": mission.name, "vehicle": params.name, "preset": preset.name,
+        "seed": args.seed, "sim_time_s": result.sim_time_s,
+        "wall_time_s": result.wall_time_s, "realtime_factor": result.realtime_factor,
+        "touchdowns": len(result.touchdown_speeds_m_s),
+        "max_touchdown_speed_m_s": max(result.touchdown_speeds_m_s, default=0.0),
+    }
+    out.update(flight_metrics(record.rows, min_spin_hz=params.rotors.min_spin_hz,
+                              max_spin_hz=params.rotors.max_spin_hz))
+    return out
+
+
+_ROWS = (
+    ("ticks", "ticks", "{:.0f}"),
+    ("duration", "duration_s", "{:.1f}"),
+    ("mean |e_p| [mm]", "pos_err_mean_mm", "{:.2f}"),
+    ("max |e_p| [mm]", "pos_err_max_mm", "{:.2f}"),
+    ("mean |e_roll| [deg]", "roll_err_mean_deg", "{:.3f}"),
+    ("mean |e_pitch| [deg]", "pitch_err_mean_deg", "{:.3f}"),
+    ("mean |e_yaw| [deg]", "yaw_err_mean_deg", "{:.3f}"),
+    ("mean angle(R_r,R_d) [deg]", "rd_dev_mean_deg", "{:.3f}"),
+    ("mean angle(R_d,R_B) [deg]", "inner_err_mean_deg", "{:.3f}"),
+    ("spin min [Hz]", "spin_min_hz", "{:.1f}"),
+    ("spin max [Hz]", "spin_max_hz", "{:.1f}"),
+    ("saturated ticks [%]", "spin_saturated_frac", "{:.2%}"),
+    ("internal-force loss [%]", "internal_force_loss_mean", "{:.2%}"),
+)
+
+
+def format_table(summary: dict[str, Any]) -> str:
+    lines = [f"{summary['mission']} on {summary['vehicle']}, preset {summary['preset']}, "
+             f"seed {summary['seed']}",
+             f"{'':28s}{'all':>12s}{'UDT':>12s}{'MDT':>12s}"]
+    for label, key, fmt in _ROWS:
+        cells = []
+        for phase in ("all", "udt", "mdt"):
+            v = summary.get(f"{phase}_{key}", math.nan)
+            cells.append("-" if isinstance(v, float) and math.isnan(v) else fmt.format(v))
+        lines.append(f"{label:28s}" + "".join(f"{c:>12s}" for c in cells))
+    lines.append(f"simulated {summary['sim_time_s']:.1f} s in {summary['wall_time_s']:.1f} s "
+                 f"wall: {summary['realtime_factor']:.1f}x real time")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    summary = simulate(args)
+    if args.json:
+        json.dump({k: (None if isinstance(v, float) and math.isnan(v) else v)
+                   for k, v in summary.items()}, sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print(format_table(summary))
+        if args.log:
+            print(f"flight record: {args.log}")
+    return 0

@@ -1,0 +1,131 @@
+"""Tracking metrics over a flight record, split by actuation phase (paper-notes item 13).
+
+Phases, over the measured ticks of the mission (takeoff and landing excluded):
+
+- ``all``: every measured tick;
+- ``udt`` (under-actuated): measured tilt alpha < 1 deg;
+- ``mdt`` (multi-directional thrust): alpha > 20 deg;
+
+``udt`` and ``mdt`` skip the first 2 s after entering the phase and the 2 s after any step of
+the alpha reference. Errors: position ``|p_B - p_r|`` on the recorded (true) state; attitude:
+the absolute ZYX Euler angles of ``R_r^T R_B`` (against the reference, not R_d); the R_d
+deviation is the geodesic angle of ``R_r^T R_d``; the inner-loop error that of ``R_d^T R_B``.
+Internal-force loss is ``1 - eta_f`` of the commanded thrusts.
+
+Every key carries its unit: ``<phase>_<quantity>_<unit>``, e.g. ``udt_pos_err_mean_mm``.
+Pure functions of the record's rows; a phase without ticks gives NaN values and ``ticks = 0``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+UDT_MAX_DEG = 1.0
+MDT_MIN_DEG = 20.0
+SETTLE_S = 2.0
+#: a change of the alpha reference larger than this between two ticks is a step
+ALPHA_STEP_DEG = 0.5
+PHASES = ("all", "udt", "mdt")
+
+
+def quat_to_rot(q: npt.ArrayLike) -> FloatArray:
+    """Rotation matrices (N, 3, 3) of quaternions (N, 4) (w, x, y, z), normalised first."""
+    q = np.asarray(q, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
+
+
+def euler_errors_rad(q_ref: npt.ArrayLike, q_body: npt.ArrayLike) -> FloatArray:
+    """|roll|, |pitch|, |yaw| (N, 3) of ``R_r^T R_B`` (ZYX convention)."""
+    e = np.swapaxes(quat_to_rot(q_ref), -1, -2) @ quat_to_rot(q_body)
+    roll = np.arctan2(e[..., 2, 1], e[..., 2, 2])
+    pitch = -np.arcsin(np.clip(e[..., 2, 0], -1.0, 1.0))
+    yaw = np.arctan2(e[..., 1, 0], e[..., 0, 0])
+    return np.abs(np.stack([roll, pitch, yaw], -1))
+
+
+def geodesic_rad(q_a: npt.ArrayLike, q_b: npt.ArrayLike) -> FloatArray:
+    """Angle (rad) of the rotation between two attitudes, per row."""
+    a = np.asarray(q_a, dtype=float)
+    b = np.asarray(q_b, dtype=float)
+    dot = np.abs(np.sum(a * b, axis=-1)) / (np.linalg.norm(a, axis=-1)
+                                            * np.linalg.norm(b, axis=-1))
+    return np.asarray(2.0 * np.arccos(np.clip(dot, 0.0, 1.0)), dtype=float)
+
+
+def _time_since_start(t: FloatArray, starts: BoolArray) -> FloatArray:
+    """Time since the most recent tick flagged in ``starts`` (inf before the first)."""
+    marks = np.where(starts, t, -np.inf)
+    return np.asarray(t - np.maximum.accumulate(marks), dtype=float)
+
+
+def phase_masks(rows: np.ndarray) -> dict[str, BoolArray]:
+    """Boolean tick masks of the phases ``all``, ``udt`` and ``mdt``."""
+    t = rows["t_s"].astype(float)
+    measured = rows["measured"].astype(bool)
+    alpha_deg = np.degrees(rows["alpha_rad"].astype(float))
+    ref_deg = np.degrees(rows["alpha_ref_rad"].astype(float))
+    jump = np.zeros(len(rows), dtype=bool)
+    if len(rows) > 1:
+        d = np.abs(np.diff(ref_deg))
+        jump[1:] = np.nan_to_num(d, nan=0.0) > ALPHA_STEP_DEG
+    since_step = _time_since_start(t, jump)
+    out = {"all": measured}
+    for name, in_phase in (("udt", alpha_deg < UDT_MAX_DEG), ("mdt", alpha_deg > MDT_MIN_DEG)):
+        ph = in_phase & measured
+        entered = ph & ~np.concatenate([[False], ph[:-1]])
+        since_entry = _time_since_start(t, entered)
+        out[name] = ph & (since_entry >= SETTLE_S) & (since_step >= SETTLE_S)
+    return out
+
+
+def flight_metrics(rows: np.ndarray, *, min_spin_hz: float | None = None,
+                   max_spin_hz: float | None = None) -> dict[str, float]:
+    """The summary metrics of a flight record's rows, per phase, with unit-suffixed keys."""
+    masks = phase_masks(rows)
+    pos_err = np.linalg.norm(rows["pos_w_m"].astype(float) - rows["pos_ref_w_m"].astype(float),
+                             axis=1)
+    eul = euler_errors_rad(rows["q_wr"], rows["q_wb"])
+    rd_dev = geodesic_rad(rows["q_wr"], rows["q_wd"])
+    inner = geodesic_rad(rows["q_wd"], rows["q_wb"])
+    spins = rows["spin_cmd_hz"].astype(float)
+    sat = rows["sat_mask"] > 0
+    loss = 1.0 - rows["eta_f"].astype(float)
+    out: dict[str, float] = {}
+    for name in PHASES:
+        m = masks[name]
+        n = int(np.count_nonzero(m))
+        out[f"{name}_ticks"] = float(n)
+        dt = float(np.median(np.diff(rows["t_s"]))) if len(rows) > 1 else 0.0
+        out[f"{name}_duration_s"] = n * dt
+
+        def mean(x: FloatArray, mask: BoolArray = m) -> float:
+            return float(np.mean(x[mask])) if n else math.nan
+
+        out[f"{name}_pos_err_mean_mm"] = 1000.0 * mean(pos_err)
+        out[f"{name}_pos_err_max_mm"] = 1000.0 * float(np.max(pos_err[m])) if n else math.nan
+        for i, axis in enumerate(("roll", "pitch", "yaw")):
+            out[f"{name}_{axis}_err_mean_deg"] = math.degrees(mean(eul[:, i]))
+        out[f"{name}_rd_dev_mean_deg"] = math.degrees(mean(rd_dev))
+        out[f"{name}_rd_dev_max_deg"] = math.degrees(float(np.max(rd_dev[m]))) if n else math.nan
+        out[f"{name}_inner_err_mean_deg"] = math.degrees(mean(inner))
+        out[f"{name}_spin_min_hz"] = float(np.min(spins[m])) if n else math.nan
+        out[f"{name}_spin_max_hz"] = float(np.max(spins[m])) if n else math.nan
+        out[f"{name}_spin_saturated_frac"] = mean(sat.astype(float))
+        out[f"{name}_internal_force_loss_mean"] = mean(loss)
+    if min_spin_hz is not None and max_spin_hz is not None:
+        s = spins[masks["all"]]
+        out["all_spin_within_limits"] = float(bool(
+            s.size == 0 or (np.min(s) >= min_spin_hz - 1e-3 and np.max(s) <= max_spin_hz + 1e-3)))
+    return out
