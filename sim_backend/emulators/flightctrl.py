@@ -44,6 +44,7 @@ import random
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import IntEnum
 from pathlib import Path
@@ -146,6 +147,8 @@ class SentImu:
     t_ns: int
     message: mkm.ImuMessage
     altered: bool
+    wire: bytes
+    """The bytes put on the wire (after any corruption or drops)."""
 
 
 class _MotorState(IntEnum):
@@ -471,9 +474,14 @@ class EmulatedFlightCtrl:
         axes = self.config.imu_axes
         msg = mkm.ImuMessage(self._imu_total & 0xFF, axes.to_board(reading.accel_m_s2),
                              axes.to_board(reading.gyro_rad_s))
-        altered = self._send_tk3(msg)
-        if self.config.record_truth:
-            self.sent_imu.append(SentImu(self._imu_total, self._sim_ns, msg, altered))
+        encoded = msg.encode()
+        msg = mkm.ImuMessage.decode(encoded[1:])  # what the board really sends: quantised
+        total, t_ns = self._imu_total, self._sim_ns
+
+        def record(altered: bool, wire: bytes) -> None:
+            self.sent_imu.append(SentImu(total, t_ns, msg, altered, wire))
+
+        self._send(framing_tk3.encode_frame(encoded), record if self.config.record_truth else None)
         self._imu_total += 1
         self._count("imu_sent")
 
@@ -562,15 +570,17 @@ class EmulatedFlightCtrl:
 
     # ---------------------------------------------------------------- output
 
-    def _send_tk3(self, msg: mkm.BoardMessage) -> bool:
-        return self._send(framing_tk3.encode_frame(msg.encode()))
+    def _send_tk3(self, msg: mkm.BoardMessage) -> None:
+        self._send(framing_tk3.encode_frame(msg.encode()))
 
-    def _send_stock(self, msg: mkm.StockMessage) -> bool:
-        return self._send(framing_stock.encode_frame(framing_stock.Address.FLIGHT_CTRL,
-                                                     msg.CMD, msg.payload()))
+    def _send_stock(self, msg: mkm.StockMessage) -> None:
+        self._send(framing_stock.encode_frame(framing_stock.Address.FLIGHT_CTRL,
+                                              msg.CMD, msg.payload()))
 
-    def _send(self, frame: bytes) -> bool:
-        """Queue one frame through the faulty wire; True if the wire altered it."""
+    def _send(self, frame: bytes,
+              record: Callable[[bool, bytes], None] | None = None) -> None:
+        """Put one frame through the faulty wire; ``record(altered, wire)`` runs before the
+        bytes can reach the client."""
         faults = self.config.faults
         altered = False
         if faults.corrupt_prob or faults.drop_prob:
@@ -579,17 +589,22 @@ class EmulatedFlightCtrl:
         if altered:
             self._count("frames_altered")
         if faults.baud is None:
+            if record is not None:
+                record(altered, frame)
             self._write(frame)
-            return altered
+            return
         now = time.monotonic()
         start = max(now, self._tx_busy_until)
         done = start + len(frame) * 10.0 / faults.baud
         if done - now > _TX_BACKLOG_S:
             self._count("tx_overruns")
-            return altered
+            if record is not None:
+                record(True, b"")
+            return
+        if record is not None:
+            record(altered, frame)
         self._tx_busy_until = done
         self._tx_queue.append((done, frame))
-        return altered
 
     def _damage(self, frame: bytes) -> tuple[bytes, bool]:
         faults, rng = self.config.faults, self._rng
