@@ -70,7 +70,6 @@ def q_from_euler(roll: float, pitch: float, yaw: float) -> Quat:
 def rotate_inverse(q: Quat, v: Vec3) -> Vec3:
     """``R(q)^T v``: a vector of the parent frame expressed in the child frame of ``q``."""
     w, x, y, z = q
-    # R^T v = v + 2 w (v x u) + 2 u x (u x v)... computed from R's rows for clarity
     r00 = 1 - 2 * (y * y + z * z)
     r01 = 2 * (x * y - w * z)
     r02 = 2 * (x * z + w * y)

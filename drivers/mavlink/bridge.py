@@ -1,0 +1,660 @@
+"""The MAVLink bridge: the ground station seen by a GCS (QGroundControl, MAVProxy) over UDP.
+
+Wire protocol: MAVLink2, ``common`` dialect (pymavlink 2.4.50), one UDP link chosen by URI
+(:mod:`drivers.mavlink.link`: ``udpout:HOST:PORT`` or ``udpin:HOST:PORT``), system id 1 and
+component id 1 (MAV_COMP_ID_AUTOPILOT1) by default, optionally signed
+(:mod:`drivers.mavlink.signing`).
+
+Telemetry out (rates in Hz from :class:`MavlinkConfig`, 0 disables; layout in
+:mod:`drivers.mavlink.messages`): HEARTBEAT, SYS_STATUS, ATTITUDE, ATTITUDE_QUATERNION,
+LOCAL_POSITION_NED, ODOMETRY, ACTUATOR_OUTPUT_STATUS, and STATUSTEXT for every event of the
+snapshots, every phase transition (``ARMED -> TAKEOFF``) and every health flag that changes
+(``fault: mocap`` / ``ok: mocap``). A GCS may change a rate with MAV_CMD_SET_MESSAGE_INTERVAL.
+
+Commands in (each answered by COMMAND_ACK with the sink's :class:`CommandResult`):
+
+=====================================  ========================================================
+COMMAND_LONG / COMMAND_INT             operator command
+=====================================  ========================================================
+COMPONENT_ARM_DISARM (400)             p1 = 1: Arm; p1 = 0: Disarm; p1 = 0 and p2 = 21196
+                                       (force): EmergencyStop
+NAV_TAKEOFF (22)                       Takeoff(alt_m = p7, height above the world origin)
+NAV_LAND (21)                          Land
+DO_FLIGHTTERMINATION (185)             p1 >= 0.5: EmergencyStop
+USER_1 (31010)                         SetTilt(tilt_rad = radians(p1)), p1 in degrees
+REQUEST_MESSAGE (512)                  p1 = message id: sent at once if it is one of ours,
+                                       AUTOPILOT_VERSION included; else UNSUPPORTED
+REQUEST_AUTOPILOT_CAPABILITIES (520)   AUTOPILOT_VERSION
+SET_MESSAGE_INTERVAL (511)             p1 = message id, p2 = interval us (0 default, -1 off)
+anything else (GET_HOME_POSITION ...)  UNSUPPORTED
+=====================================  ========================================================
+
+SET_POSITION_TARGET_LOCAL_NED (frame LOCAL_NED; position and optionally yaw) and
+SET_ATTITUDE_TARGET (quaternion) become :class:`PoseSetpoint` (accepted only in MISSION; no ACK
+exists for them, the result is counted and an accepted position target is echoed as
+POSITION_TARGET_LOCAL_NED). PARAM_REQUEST_LIST / PARAM_REQUEST_READ / PARAM_SET serve the
+:class:`ParamSpec` table (REAL32); a PARAM_SET outside the range or refused by the sink is
+answered with the unchanged value. MISSION_REQUEST_LIST gets MISSION_COUNT 0, FTP requests get a
+NAK (so MAVProxy falls back to PARAM_REQUEST_LIST), TIMESYNC requests are answered, GCS
+HEARTBEATs are tracked for link-loss detection; everything else is ignored and counted by type.
+Messages addressed to another system or component are ignored.
+
+Security: with a key (:func:`~drivers.mavlink.signing.load_signing_key`, never the session
+YAML) every outgoing frame is signed, and incoming frames are accepted only when signed with
+that key and fresh; unsigned, wrongly signed and replayed frames are dropped before being
+looked at, and counted apart. ``allow_unsigned_ids`` lists the messages accepted *unsigned*
+(default: RADIO_STATUS 109 and RADIO 166, status reports from telemetry radios that cannot sign;
+neither can command anything). A badly signed frame is never accepted, allow-listed or not.
+
+MoCap input: ATT_POS_MOCAP (q + NED position) and VISION_POSITION_ESTIMATE (NED position +
+roll/pitch/yaw) are converted to the world frame and offered by :attr:`MavlinkBridge.mocap`, a
+:class:`~drivers.mocap.pose.PoseSource` (capture time = arrival time on the ground-station
+clock minus ``mocap_latency_s``; the sender's clock is not comparable to ours).
+
+Threading: :meth:`MavlinkBridge.publish` is called by the telemetry process at any rate; it
+only swaps a reference and appends events under a lock (never blocks on I/O). Either
+:meth:`start` a service thread (wall clock), or call :meth:`step` with the session time from
+the owner's loop (lockstep runs).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections import Counter, deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from pymavlink.dialects.v20 import common as mavlink2
+
+from config.schema import ConfigValueError, spec
+from drivers.mavlink import messages
+from drivers.mavlink.frames import (
+    ned_to_world,
+    q_from_euler,
+    q_ned_to_world,
+    q_normalized,
+)
+from drivers.mavlink.link import MavlinkCodec, UdpEndpoint, parse_mavlink_uri
+from drivers.mavlink.signing import SigningStats
+from drivers.mocap.pose import MocapStats, PoseSample, StreamMonitor, TrackingStatus
+from groundstation.operator import (
+    Arm,
+    CommandResult,
+    Disarm,
+    EmergencyStop,
+    FlightPhase,
+    Land,
+    OperatorCommand,
+    OperatorCommandSink,
+    ParamSpec,
+    PoseSetpoint,
+    SetParam,
+    SetTilt,
+    Severity,
+    StatusEvent,
+    Takeoff,
+    VehicleTelemetry,
+)
+
+log = logging.getLogger(__name__)
+M = mavlink2
+
+FORCE_DISARM_MAGIC = 21196
+MAV_CMD_SET_TILT = M.MAV_CMD_USER_1
+FTP_OPCODE_NAK = 129
+FTP_OPEN_OPCODES = (3, 4, 6, 11)  # ListDirectory, OpenFileRO, CreateFile, OpenFileWO
+FTP_ERR_UNKNOWN_COMMAND = 7
+FTP_ERR_FILE_NOT_FOUND = 10
+MOCAP_BODY_ID = 0
+
+
+@dataclass(frozen=True)
+class MavlinkConfig:
+    """The bridge's settings (a session YAML's ``mavlink:`` block). No key material here."""
+
+    uri: str = spec("udpout:127.0.0.1:14550", doc="udpout:HOST:PORT or udpin:HOST:PORT")
+    sysid: int = spec(1, ge=1, le=255, doc="our MAVLink system id")
+    compid: int = spec(1, ge=1, le=255, doc="our component id (1 = autopilot)")
+    heartbeat_hz: float = spec(1.0, ge=0.0, le=50.0, doc="HEARTBEAT rate")
+    sys_status_hz: float = spec(2.0, ge=0.0, le=50.0, doc="SYS_STATUS rate")
+    attitude_hz: float = spec(50.0, ge=0.0, le=500.0, doc="ATTITUDE rate")
+    attitude_quaternion_hz: float = spec(50.0, ge=0.0, le=500.0, doc="ATTITUDE_QUATERNION rate")
+    local_position_hz: float = spec(20.0, ge=0.0, le=500.0, doc="LOCAL_POSITION_NED rate")
+    odometry_hz: float = spec(20.0, ge=0.0, le=500.0, doc="ODOMETRY rate")
+    actuator_output_hz: float = spec(10.0, ge=0.0, le=500.0, doc="ACTUATOR_OUTPUT_STATUS rate")
+    signing: bool = spec(False, doc="require signed commands and sign telemetry")
+    key_file: str | None = spec(None, doc="file holding the key (hex or passphrase)")
+    key_env: str = spec("FASTHEX_MAVLINK_KEY", doc="environment variable holding the key")
+    link_id: int = spec(0, ge=0, le=255, doc="signing link id of our outgoing stream")
+    allow_unsigned_ids: tuple[int, ...] = spec((109, 166), ge=0,
+                                               doc="message ids accepted unsigned")
+    gcs_timeout_s: float = spec(3.0, gt=0.0, doc="GCS heartbeat age counted as link lost")
+    mocap_latency_s: float = spec(0.0, ge=0.0, le=1.0, doc="assumed age of MAVLink MoCap poses")
+
+    def __post_init__(self) -> None:
+        try:
+            parse_mavlink_uri(self.uri)
+        except ValueError as exc:
+            raise ConfigValueError("uri", str(exc)) from None
+
+    def rates_hz(self) -> dict[str, float]:
+        return {
+            "HEARTBEAT": self.heartbeat_hz,
+            "SYS_STATUS": self.sys_status_hz,
+            "ATTITUDE": self.attitude_hz,
+            "ATTITUDE_QUATERNION": self.attitude_quaternion_hz,
+            "LOCAL_POSITION_NED": self.local_position_hz,
+            "ODOMETRY": self.odometry_hz,
+            "ACTUATOR_OUTPUT_STATUS": self.actuator_output_hz,
+        }
+
+
+_BUILDERS: dict[str, Callable[[VehicleTelemetry], Any]] = {
+    "SYS_STATUS": messages.sys_status,
+    "ATTITUDE": messages.attitude,
+    "ATTITUDE_QUATERNION": messages.attitude_quaternion,
+    "LOCAL_POSITION_NED": messages.local_position_ned,
+    "ODOMETRY": messages.odometry,
+    "ACTUATOR_OUTPUT_STATUS": messages.actuator_output_status,
+}
+_MSG_IDS: dict[int, str] = {
+    M.MAVLINK_MSG_ID_HEARTBEAT: "HEARTBEAT",
+    M.MAVLINK_MSG_ID_SYS_STATUS: "SYS_STATUS",
+    M.MAVLINK_MSG_ID_ATTITUDE: "ATTITUDE",
+    M.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: "ATTITUDE_QUATERNION",
+    M.MAVLINK_MSG_ID_LOCAL_POSITION_NED: "LOCAL_POSITION_NED",
+    M.MAVLINK_MSG_ID_ODOMETRY: "ODOMETRY",
+    M.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS: "ACTUATOR_OUTPUT_STATUS",
+}
+
+
+@dataclass(frozen=True, slots=True)
+class BridgeStats:
+    messages_out: dict[str, int]
+    frames_in: int  # well-formed frames received (before the signature check)
+    corrupted_in: int  # bytes that were not a valid frame
+    signing: SigningStats | None  # None when signing is off
+    command_results: dict[str, int]  # COMMAND_LONG/INT results by name
+    setpoint_results: dict[str, int]  # SET_*_TARGET results by name
+    ignored: dict[str, int]  # messages we do not act upon, by type
+    events_dropped: int  # status events lost because the queue was full
+    no_peer_drops: int  # telemetry frames not sent: no GCS address yet (udpin)
+    gcs_heartbeat_age_s: float  # inf before the first GCS heartbeat
+
+
+class MavlinkPoseSource:
+    """MoCap poses received over MAVLink as a :class:`~drivers.mocap.pose.PoseSource`."""
+
+    def __init__(self, clock_ns: Callable[[], int], latency_s: float) -> None:
+        self._clock_ns = clock_ns
+        self._latency_s = latency_s
+        self._monitor = StreamMonitor(clock_ns)
+        self._lock = threading.Lock()
+        self._latest: PoseSample | None = None
+        self._seq = 0
+
+    def latest(self) -> PoseSample | None:
+        with self._lock:
+            return self._latest
+
+    def stats(self) -> MocapStats:
+        return self._monitor.snapshot()
+
+    def on_pose(self, pos_ned_m: tuple[float, float, float],
+                q_ned_frd: tuple[float, float, float, float], source: str) -> None:
+        rx = self._clock_ns()
+        try:
+            q = q_ned_to_world(q_normalized(q_ned_frd))
+        except ValueError:
+            self._monitor.count_malformed()
+            return
+        if not all(math.isfinite(v) for v in pos_ned_m):
+            self._monitor.count_malformed()
+            return
+        self._seq += 1
+        sample = PoseSample(
+            t_ns=rx - int(self._latency_s * 1e9), rx_t_ns=rx, frame_number=self._seq,
+            body_id=MOCAP_BODY_ID, body_name=source, status=TrackingStatus.OK,
+            pos_w_m=ned_to_world(pos_ned_m), q_wb=q, latency_s=self._latency_s,
+            mean_error_m=math.nan)
+        self._monitor.on_frame(self._seq, rx, self._latency_s)
+        self._monitor.on_sample(sample)
+        with self._lock:
+            self._latest = sample
+
+
+class MavlinkBridge:
+    """Telemetry out, operator commands in, over one MAVLink link. See the module docstring."""
+
+    def __init__(self, config: MavlinkConfig, sink: OperatorCommandSink, *,
+                 params: Sequence[ParamSpec] = (), key: bytes | None = None,
+                 clock: Callable[[], float] = time.monotonic,
+                 clock_ns: Callable[[], int] = time.monotonic_ns,
+                 max_events: int = 256) -> None:
+        if config.signing and key is None:
+            raise ValueError("signing is on but no key was given (load_signing_key)")
+        self.config = config
+        self._sink = sink
+        self._clock = clock
+        self._clock_ns = clock_ns
+        self._codec = MavlinkCodec(config.sysid, config.compid, key if config.signing else None,
+                                   config.link_id, frozenset(config.allow_unsigned_ids))
+        self._endpoint = UdpEndpoint(config.uri)
+        self._params: dict[str, ParamSpec] = {p.name: p for p in params}
+        self._param_order = [p.name for p in params]
+        self._param_values = {p.name: float(p.value) for p in params}
+        self.mocap = MavlinkPoseSource(clock_ns, config.mocap_latency_s)
+        # mailbox written by publish(), read by the service thread
+        self._lock = threading.Lock()
+        self._latest: VehicleTelemetry | None = None
+        self._events: deque[StatusEvent] = deque()
+        self._max_events = max_events
+        self._events_dropped = 0
+        self._prev_phase: FlightPhase | None = None
+        self._prev_health: dict[str, bool] | None = None
+        # service-thread state
+        self._periods = {name: (1.0 / hz if hz > 0 else None)
+                         for name, hz in config.rates_hz().items()}
+        self._next_due: dict[str, float] = {}
+        self._chunk_id = 0
+        self._gcs_heartbeat_t: float | None = None
+        self._out: Counter[str] = Counter()
+        self._cmd_results: Counter[str] = Counter()
+        self._sp_results: Counter[str] = Counter()
+        self._ignored: Counter[str] = Counter()
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._step_lock = threading.Lock()
+
+    # -- the telemetry side -------------------------------------------------------------
+
+    def publish(self, tel: VehicleTelemetry) -> None:
+        """Hand over the newest snapshot. Never blocks on I/O; events are queued (bounded,
+        drops counted); phase changes and health changes become status events here."""
+        h = tel.health
+        health = {"imu": h.imu_ok, "mocap": h.mocap_ok, "estimator": h.estimator_ok,
+                  "motors": h.motors_ok, "servo": h.servo_ok, "battery": h.battery_ok}
+        with self._lock:
+            new: list[StatusEvent] = []
+            if self._prev_phase is not None and tel.phase is not self._prev_phase:
+                sev = Severity.EMERGENCY if tel.phase is FlightPhase.CUT else Severity.NOTICE
+                new.append(StatusEvent(tel.t_s, f"{self._prev_phase.name} -> {tel.phase.name}",
+                                       sev))
+            if self._prev_health is not None:
+                for name, ok in health.items():
+                    if ok != self._prev_health[name]:
+                        new.append(StatusEvent(tel.t_s, f"{'ok' if ok else 'fault'}: {name}",
+                                               Severity.INFO if ok else Severity.WARNING))
+            new.extend(tel.events)
+            for ev in new:
+                if len(self._events) >= self._max_events:
+                    self._events_dropped += 1
+                else:
+                    self._events.append(ev)
+            self._prev_phase = tel.phase
+            self._prev_health = health
+            self._latest = tel
+
+    def post_event(self, text: str, severity: Severity = Severity.INFO) -> None:
+        """Queue a status event outside a snapshot (e.g. a message from the session)."""
+        t = self._latest.t_s if self._latest is not None else 0.0
+        with self._lock:
+            if len(self._events) >= self._max_events:
+                self._events_dropped += 1
+            else:
+                self._events.append(StatusEvent(t, text, severity))
+
+    # -- servicing -----------------------------------------------------------------------
+
+    def step(self, now_s: float | None = None) -> None:
+        """One service pass: act on every datagram waiting, then send what is due at
+        ``now_s`` (the bridge clock when None). Never blocks."""
+        now = self._clock() if now_s is None else now_s
+        with self._step_lock:
+            for data in self._endpoint.recv_all():
+                for msg in self._codec.decode(data):
+                    try:
+                        self._handle(msg, now)
+                    except Exception:  # a bad message must not stop the link
+                        log.exception("%s: error handling %s", self._endpoint.name,
+                                      msg.get_type())
+                        self._ignored["ERROR_" + msg.get_type()] += 1
+            self._send_due(now)
+
+    def next_due_s(self, now_s: float) -> float:
+        """Seconds until the next telemetry message is due (for the service thread's wait)."""
+        if not self._next_due:
+            return 0.0
+        return max(0.0, min(self._next_due.values()) - now_s)
+
+    def start(self) -> None:
+        """Serve the link in a daemon thread driven by the bridge clock."""
+        if self._thread is not None:
+            return
+        self._thread = threading.Thread(target=self._run, name="mavlink-bridge", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            now = self._clock()
+            try:
+                self.step(now)
+            except Exception:
+                log.exception("%s: bridge step failed", self._endpoint.name)
+            wait = min(self.next_due_s(self._clock()), 0.05)
+            if wait > 0:
+                self._endpoint.wait_readable(wait)
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+
+    def close(self) -> None:
+        self.stop()
+        self._endpoint.close()
+
+    def __enter__(self) -> MavlinkBridge:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def local_address(self) -> tuple[str, int]:
+        return self._endpoint.local_address
+
+    def param_value(self, name: str) -> float:
+        return self._param_values[name]
+
+    def gcs_link_ok(self, now_s: float | None = None) -> bool:
+        """A GCS heartbeat arrived within ``gcs_timeout_s``."""
+        now = self._clock() if now_s is None else now_s
+        t = self._gcs_heartbeat_t
+        return t is not None and now - t <= self.config.gcs_timeout_s
+
+    def stats(self, now_s: float | None = None) -> BridgeStats:
+        now = self._clock() if now_s is None else now_s
+        v = self._codec.verifier
+        t = self._gcs_heartbeat_t
+        with self._lock:
+            dropped = self._events_dropped
+        return BridgeStats(
+            messages_out=dict(self._out), frames_in=self._codec.frames_in,
+            corrupted_in=self._codec.corrupted, signing=None if v is None else v.stats(),
+            command_results=dict(self._cmd_results), setpoint_results=dict(self._sp_results),
+            ignored=dict(self._ignored), events_dropped=dropped,
+            no_peer_drops=self._endpoint.no_peer_drops,
+            gcs_heartbeat_age_s=math.inf if t is None else now - t)
+
+    # -- sending -------------------------------------------------------------------------
+
+    def _send(self, msg: Any) -> None:
+        if self._endpoint.send(self._codec.encode(msg)):
+            self._out[msg.get_type()] += 1
+
+    def _send_due(self, now: float) -> None:
+        with self._lock:
+            tel = self._latest
+            events = list(self._events)
+            self._events.clear()
+        for ev in events:
+            self._chunk_id = self._chunk_id % 65535 + 1
+            for m in messages.statustext(ev, self._chunk_id):
+                self._send(m)
+        for name, period in self._periods.items():
+            if period is None:
+                self._next_due.pop(name, None)
+                continue
+            due = self._next_due.setdefault(name, now)
+            if now + 1e-9 < due:
+                continue
+            if name == "HEARTBEAT":
+                self._send(messages.heartbeat(tel))
+            elif tel is not None:
+                self._send(_BUILDERS[name](tel))
+            # keep the cadence; after a stall, restart from now instead of bursting
+            nxt = due + period
+            self._next_due[name] = nxt if nxt > now else now + period
+
+    def _send_now(self, name: str) -> None:
+        tel = self._latest
+        if name == "HEARTBEAT":
+            self._send(messages.heartbeat(tel))
+        elif tel is not None:
+            self._send(_BUILDERS[name](tel))
+
+    # -- receiving -----------------------------------------------------------------------
+
+    def _for_us(self, msg: Any) -> bool:
+        ts = getattr(msg, "target_system", 0)
+        tc = getattr(msg, "target_component", 0)
+        return ts in (0, self.config.sysid) and tc in (0, self.config.compid)
+
+    def _handle(self, msg: Any, now: float) -> None:
+        kind = msg.get_type()
+        if kind == "HEARTBEAT":
+            if msg.type == M.MAV_TYPE_GCS:
+                self._gcs_heartbeat_t = now
+            return
+        if kind in ("COMMAND_LONG", "COMMAND_INT"):
+            if self._for_us(msg):
+                self._on_command(msg)
+            return
+        if kind in ("PARAM_REQUEST_LIST", "PARAM_REQUEST_READ", "PARAM_SET"):
+            if self._for_us(msg):
+                self._on_param(msg, kind)
+            return
+        if kind == "SET_POSITION_TARGET_LOCAL_NED":
+            if self._for_us(msg):
+                self._on_position_target(msg)
+            return
+        if kind == "SET_ATTITUDE_TARGET":
+            if self._for_us(msg):
+                self._on_attitude_target(msg)
+            return
+        if kind == "MISSION_REQUEST_LIST":
+            if self._for_us(msg):
+                self._send(M.MAVLink_mission_count_message(
+                    msg.get_srcSystem(), msg.get_srcComponent(), 0, msg.mission_type))
+            return
+        if kind == "FILE_TRANSFER_PROTOCOL":
+            if msg.target_system in (0, self.config.sysid):
+                self._on_ftp(msg)
+            return
+        if kind == "TIMESYNC":
+            if msg.tc1 == 0:
+                self._send(M.MAVLink_timesync_message(self._clock_ns(), msg.ts1))
+            return
+        if kind == "ATT_POS_MOCAP":
+            self.mocap.on_pose((msg.x, msg.y, msg.z), tuple(msg.q), "ATT_POS_MOCAP")
+            return
+        if kind == "VISION_POSITION_ESTIMATE":
+            q = q_from_euler(msg.roll, msg.pitch, msg.yaw)
+            self.mocap.on_pose((msg.x, msg.y, msg.z), q, "VISION_POSITION_ESTIMATE")
+            return
+        self._ignored[kind] += 1
+
+    def _submit(self, cmd: OperatorCommand) -> CommandResult:
+        try:
+            return CommandResult(self._sink.submit(cmd))
+        except Exception:
+            log.exception("%s: command sink failed on %s", self._endpoint.name, cmd)
+            return CommandResult.FAILED
+
+    def _command_to_operator(self, command: int, p: list[float]) -> OperatorCommand | None:
+        if command == M.MAV_CMD_COMPONENT_ARM_DISARM:
+            if p[0] >= 0.5:
+                return Arm()
+            if round(p[1]) == FORCE_DISARM_MAGIC:
+                return EmergencyStop("force disarm")
+            return Disarm()
+        if command == M.MAV_CMD_NAV_TAKEOFF:
+            return Takeoff(alt_m=p[6])
+        if command == M.MAV_CMD_NAV_LAND:
+            return Land()
+        if command == M.MAV_CMD_DO_FLIGHTTERMINATION and p[0] >= 0.5:
+            return EmergencyStop("flight termination")
+        if command == MAV_CMD_SET_TILT:
+            return SetTilt(tilt_rad=math.radians(p[0]))
+        return None
+
+    def _on_command(self, msg: Any) -> None:
+        command = int(msg.command)
+        if msg.get_type() == "COMMAND_LONG":
+            p = [msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6,
+                 msg.param7]
+        else:  # COMMAND_INT: x, y are scaled integers, z a float
+            p = [msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x), float(msg.y),
+                 msg.z]
+        result = self._service_command(command, p)
+        if result is None:
+            cmd = self._command_to_operator(command, p)
+            result = CommandResult.UNSUPPORTED if cmd is None else self._submit(cmd)
+        self._cmd_results[result.name] += 1
+        self._send(M.MAVLink_command_ack_message(command, int(result), 0, 0,
+                                                 msg.get_srcSystem(), msg.get_srcComponent()))
+
+    def _service_command(self, command: int, p: list[float]) -> CommandResult | None:
+        """Commands about the link itself; None for operator commands."""
+        R = CommandResult
+        if command == M.MAV_CMD_REQUEST_MESSAGE:
+            msg_id = int(p[0])
+            if msg_id == M.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
+                self._send_autopilot_version()
+                return R.ACCEPTED
+            name = _MSG_IDS.get(msg_id)
+            if name is None or (name != "HEARTBEAT" and self._latest is None):
+                return R.UNSUPPORTED if name is None else R.TEMPORARILY_REJECTED
+            self._send_now(name)
+            return R.ACCEPTED
+        if command == M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
+            self._send_autopilot_version()
+            return R.ACCEPTED
+        if command == M.MAV_CMD_SET_MESSAGE_INTERVAL:
+            name = _MSG_IDS.get(int(p[0]))
+            if name is None:
+                return R.UNSUPPORTED
+            interval_us = p[1]
+            if interval_us == 0:
+                hz = self.config.rates_hz()[name]
+                self._periods[name] = 1.0 / hz if hz > 0 else None
+            elif interval_us < 0:
+                self._periods[name] = None
+            elif interval_us < 1000:  # faster than 1 kHz makes no sense for a 500 Hz loop
+                return R.DENIED
+            else:
+                self._periods[name] = interval_us * 1e-6
+            return R.ACCEPTED
+        return None
+
+    def _send_autopilot_version(self) -> None:
+        caps = (M.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | M.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+                | M.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+                | M.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
+                | M.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET)
+        self._send(M.MAVLink_autopilot_version_message(
+            caps, 0, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0))
+
+    # parameters
+
+    def _param_msg(self, name: str) -> Any:
+        return M.MAVLink_param_value_message(
+            name.encode("ascii"), self._param_values[name], M.MAV_PARAM_TYPE_REAL32,
+            len(self._param_order), self._param_order.index(name))
+
+    def _on_param(self, msg: Any, kind: str) -> None:
+        if kind == "PARAM_REQUEST_LIST":
+            for name in self._param_order:
+                self._send(self._param_msg(name))
+            return
+        if kind == "PARAM_REQUEST_READ":
+            idx = int(msg.param_index)
+            name = _param_name(msg.param_id) if idx < 0 else (
+                self._param_order[idx] if idx < len(self._param_order) else "")
+            if name in self._params:
+                self._send(self._param_msg(name))
+            else:
+                self._ignored["PARAM_REQUEST_READ_UNKNOWN"] += 1
+            return
+        name = _param_name(msg.param_id)
+        spec_ = self._params.get(name)
+        if spec_ is None:
+            self._ignored["PARAM_SET_UNKNOWN"] += 1
+            return
+        value = float(msg.param_value)
+        result = CommandResult.DENIED
+        if spec_.accepts(value):
+            result = self._submit(SetParam(name, value))
+        if result is CommandResult.ACCEPTED:
+            self._param_values[name] = value
+        self._cmd_results["PARAM_SET_" + result.name] += 1
+        self._send(self._param_msg(name))
+
+    # offboard setpoints
+
+    def _on_position_target(self, msg: Any) -> None:
+        if msg.coordinate_frame != M.MAV_FRAME_LOCAL_NED:
+            self._sp_results["UNSUPPORTED"] += 1
+            return
+        mask = int(msg.type_mask)
+        pos_given = not mask & 0b111
+        yaw_given = not mask & M.POSITION_TARGET_TYPEMASK_YAW_IGNORE
+        pos = ned_to_world((msg.x, msg.y, msg.z)) if pos_given else None
+        # yaw about NED down is minus the yaw about world z up
+        yaw = -float(msg.yaw) if yaw_given else None
+        if pos is None and yaw is None:
+            self._sp_results["UNSUPPORTED"] += 1
+            return
+        result = self._submit(PoseSetpoint(pos_w_m=pos, yaw_rad=yaw))
+        self._sp_results[result.name] += 1
+        if result is CommandResult.ACCEPTED:
+            tel = self._latest
+            t_ms = messages.time_boot_ms(tel) if tel is not None else 0
+            self._send(M.MAVLink_position_target_local_ned_message(
+                t_ms, M.MAV_FRAME_LOCAL_NED, mask, msg.x, msg.y, msg.z, 0, 0, 0, 0, 0, 0,
+                msg.yaw, 0))
+
+    def _on_attitude_target(self, msg: Any) -> None:
+        if int(msg.type_mask) & M.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE:
+            self._sp_results["UNSUPPORTED"] += 1
+            return
+        try:
+            q = q_ned_to_world(q_normalized(tuple(msg.q)))
+        except ValueError:
+            self._sp_results["DENIED"] += 1
+            return
+        result = self._submit(PoseSetpoint(q_wb=q))
+        self._sp_results[result.name] += 1
+
+    # tolerated requests
+
+    def _on_ftp(self, msg: Any) -> None:
+        req = bytes(msg.payload)
+        seq = int.from_bytes(req[0:2], "little")
+        session, opcode = req[2], req[3]
+        err = FTP_ERR_FILE_NOT_FOUND if opcode in FTP_OPEN_OPCODES else FTP_ERR_UNKNOWN_COMMAND
+        payload = bytearray(251)
+        payload[0:2] = ((seq + 1) & 0xFFFF).to_bytes(2, "little")
+        payload[2] = session
+        payload[3] = FTP_OPCODE_NAK
+        payload[4] = 1  # size of the data: the error code
+        payload[5] = opcode  # req_opcode
+        payload[12] = err
+        self._send(M.MAVLink_file_transfer_protocol_message(
+            0, msg.get_srcSystem(), msg.get_srcComponent(), list(payload)))
+        self._ignored["FILE_TRANSFER_PROTOCOL"] += 1
+
+
+def _param_name(raw: Any) -> str:
+    if isinstance(raw, bytes):
+        raw = raw.decode("ascii", "replace")
+    return str(raw).split("\x00", 1)[0]
+
+
+__all__ = ["BridgeStats", "MavlinkBridge", "MavlinkConfig", "MavlinkPoseSource"]
