@@ -252,6 +252,10 @@ class ServoIdentity:
         return self.model_number == MODEL_MX28_P1
 
 
+_FRESH = (ServoHealth.OK, ServoHealth.SERVO_ERROR, ServoHealth.HOMING_REQUIRED)
+"""Health states that come with a fresh measurement: they turn STALE when it ages."""
+
+
 class _S(IntEnum):
     """Slots of the shared state array (doubles)."""
 
@@ -357,6 +361,8 @@ class _Link:
     def _check(self, what: str, result: int) -> None:
         if result != self.sdk.COMM_SUCCESS:
             text = self.ph.getTxRxResult(result)
+            if result == self.sdk.COMM_RX_CORRUPT:
+                raise _CorruptReplyError(self.uri, f"{what}: {text}") from None
             raise ServoCommError(self.uri, f"{what}: {text}") from None
 
     def call(self, what: str, fn: Any, *args: Any) -> Any:
@@ -397,7 +403,7 @@ class _Link:
     def result_code(self, exc: ServoCommError) -> ServoHealth:
         if isinstance(exc, _PortLostError):
             return ServoHealth.DISCONNECTED
-        if isinstance(exc, _CorruptReplyError) or "corrupt" in exc.message.lower():
+        if isinstance(exc, _CorruptReplyError):
             return ServoHealth.CORRUPT_REPLY
         return ServoHealth.NO_REPLY
 
@@ -763,14 +769,12 @@ class TiltServo:
         t_s = values[_S.T_S]
         age = now - t_s if math.isfinite(t_s) else math.inf
         health = ServoHealth(int(values[_S.HEALTH]))
-        heartbeat = values[_S.HEARTBEAT_T]
-        silent = not math.isfinite(heartbeat) or now - heartbeat > self.config.stale_after_s
         if self._stopped:
             health = ServoHealth.STOPPED
-        elif health is ServoHealth.OK and age > self.config.stale_after_s:
+        elif health in _FRESH and age > self.config.stale_after_s:
+            # The worker last said all was well but has not measured since: it is stuck,
+            # starved or gone. (A fault it reported stays that fault.)
             health = ServoHealth.STALE
-        elif health is not ServoHealth.NOT_STARTED and silent:
-            health = ServoHealth.STALE  # the worker itself is stuck or gone
         pos = values[_S.POS]
         return ServoState(
             t_s=t_s, seq=int(values[_S.SEQ]), tilt_rad=values[_S.TILT],

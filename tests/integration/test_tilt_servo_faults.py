@@ -1,0 +1,105 @@
+"""Faults between TiltServo and the emulated MX-28T: no reply, corrupt reply, late reply and
+an unplugged port. The driver reports them, keeps the last tilt, never blocks the caller and
+comes back by itself."""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from drivers.dynamixel import Reg, ServoHealth, ServoState, TiltServo, TiltServoConfig
+from sim_backend.emulators.dynamixel_p1 import EmulatedMX28, Fault
+from sim_backend.vehicle import BenchVehicle
+
+DEG = math.pi / 180.0
+WAIT_S = 20.0
+
+
+@pytest.fixture
+def rig(tmp_path: Path) -> Iterator[tuple[EmulatedMX28, TiltServo]]:
+    vehicle = BenchVehicle(max_tilt_rate_rad_s=100 * DEG)
+    emu = EmulatedMX28(vehicle, lock=threading.Lock(), link_path=tmp_path / "tilt-servo",
+                       drive_clock=True)
+    with emu, TiltServo(TiltServoConfig(uri=f"pty://{emu.path}?id=1")) as servo:
+        # Move to a tilt that is not zero, so "kept the last tilt" means something.
+        servo.wait_for(lambda s: s.ok, WAIT_S)
+        servo.set_tilt(5 * DEG)
+        servo.wait_for(lambda s: abs(s.tilt_rad - 5 * DEG) < 0.01 * DEG and not s.moving,
+                       WAIT_S)
+        yield emu, servo
+
+
+def assert_kept_last_tilt(state: ServoState) -> None:
+    assert state.tilt_rad == pytest.approx(5 * DEG, abs=0.01 * DEG)
+
+
+def test_that_a_silent_servo_is_no_reply_keeps_the_last_tilt_and_recovers(
+        rig: tuple[EmulatedMX28, TiltServo]) -> None:
+    emu, servo = rig
+    emu.set_fault(Fault.SILENT)
+    state = servo.wait_for(lambda s: s.health is ServoHealth.NO_REPLY, WAIT_S)
+    assert_kept_last_tilt(state)
+    assert state.timeouts >= 1
+    for _ in range(1000):
+        servo.set_tilt(6 * DEG)  # a mailbox write: returns whatever the servo does
+    emu.set_fault(Fault.NONE)
+    state = servo.wait_for(lambda s: s.ok and abs(s.tilt_rad - 6 * DEG) < 0.01 * DEG, WAIT_S)
+    assert state.seq > 0
+
+
+def test_that_a_garbled_reply_is_corrupt_reply_and_recovers(
+        rig: tuple[EmulatedMX28, TiltServo]) -> None:
+    emu, servo = rig
+    emu.set_fault(Fault.GARBLE)
+    state = servo.wait_for(lambda s: s.health is ServoHealth.CORRUPT_REPLY, WAIT_S)
+    assert_kept_last_tilt(state)
+    assert state.corrupt_replies >= 1
+    emu.set_fault(Fault.NONE)
+    servo.wait_for(lambda s: s.ok, WAIT_S)
+
+
+def test_that_late_replies_are_faults_and_never_answer_the_next_request(
+        rig: tuple[EmulatedMX28, TiltServo]) -> None:
+    emu, servo = rig
+    # Every reply 80 ms late: after the SDK's 34 ms timeout, before the driver's 100 ms resync.
+    emu.set_fault(Fault.LATE, late_s=0.08)
+    state = servo.wait_for(lambda s: s.health is ServoHealth.NO_REPLY, WAIT_S)
+    assert_kept_last_tilt(state)
+    servo.wait_for(lambda s: s.timeouts >= 5, WAIT_S)
+    emu.set_fault(Fault.NONE)
+    state = servo.wait_for(lambda s: s.ok, WAIT_S)
+    # Test: a stale late reply would be taken as the next answer; every reading after the
+    # recovery must be the servo's true state.
+    seen: set[int] = set()
+    while len(seen) < 20:
+        state = servo.wait_for(lambda s, n=max(seen, default=0): s.seq > n, WAIT_S)
+        seen.add(state.seq)
+        assert state.servo_position_steps == emu.register(Reg.PRESENT_POSITION)
+        assert state.voltage_v == pytest.approx(12.0) and state.temperature_c == 25.0
+
+
+def test_that_an_unplugged_port_is_disconnected_and_reconnects_when_it_comes_back(
+        rig: tuple[EmulatedMX28, TiltServo]) -> None:
+    emu, servo = rig
+    emu.unplug()
+    state = servo.wait_for(lambda s: s.health is ServoHealth.DISCONNECTED, WAIT_S)
+    assert_kept_last_tilt(state)
+    servo.set_tilt(7 * DEG)
+    emu.replug()
+    state = servo.wait_for(lambda s: s.ok and abs(s.tilt_rad - 7 * DEG) < 0.01 * DEG, WAIT_S)
+    assert state.reconnects == 2
+
+
+def test_that_a_measurement_older_than_100_ms_is_stale_whatever_the_worker_said(
+        rig: tuple[EmulatedMX28, TiltServo]) -> None:
+    _, servo = rig
+    state = servo.latest()
+    assert servo.latest(now_s=state.t_s + 0.05).health is ServoHealth.OK
+    stale = servo.latest(now_s=state.t_s + 0.15)
+    assert stale.health is ServoHealth.STALE
+    assert stale.age_s == pytest.approx(0.15)
+    assert_kept_last_tilt(stale)
