@@ -74,10 +74,9 @@ def test_that_late_replies_are_faults_and_never_answer_the_next_request(
     state = servo.wait_for(lambda s: s.ok, WAIT_S)
     # Test: a stale late reply would be taken as the next answer; every reading after the
     # recovery must be the servo's true state.
-    seen: set[int] = set()
-    while len(seen) < 20:
-        state = servo.wait_for(lambda s, n=max(seen, default=0): s.seq > n, WAIT_S)
-        seen.add(state.seq)
+    for _ in range(20):
+        last_seq = state.seq
+        state = servo.wait_for(lambda s, n=last_seq: s.seq > n, WAIT_S)
         assert state.servo_position_steps == emu.register(Reg.PRESENT_POSITION)
         assert state.voltage_v == pytest.approx(12.0) and state.temperature_c == 25.0
 
