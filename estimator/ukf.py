@@ -451,7 +451,7 @@ class Ukf:
             P[:, block] = 0.0
         P[POS, POS] = cfg.init_pos_sigma_m ** 2 * np.eye(3)
         P[ATT, ATT] = math.radians(cfg.init_att_sigma_deg) ** 2 * np.eye(3)
-        P[VEL, VEL] = np.diag(cfg.init_vel_sigma_m_s ** 2 if zero_velocity else vel_var)
+        P[VEL, VEL] = np.diag(np.full(3, cfg.init_vel_sigma_m_s ** 2) if zero_velocity else vel_var)
         self._x, self._P, self._q_ref = x, P, q_m.copy()
         self._nonfinite = False
         self._last_pose_t_s = self._t_s

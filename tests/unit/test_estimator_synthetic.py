@@ -14,7 +14,7 @@ def test_that_the_derivatives_of_every_trajectory_match_finite_differences() -> 
     for traj in (sy.hover(), sy.sine_x(), sy.roll_sine(), sy.lively(),
                  sy.lively(start_s=1.0, ramp_s=2.0)):
         for sig in (traj.x, traj.y, traj.z, traj.roll, traj.pitch, traj.yaw):
-            f, df, ddf = sig(t)
+            _, df, ddf = sig(t)
             fp, dfp, _ = sig(t + h)
             fm, dfm, _ = sig(t - h)
             np.testing.assert_allclose(df, (fp - fm) / (2 * h), atol=1e-7)
