@@ -84,9 +84,13 @@ def quat_rotate(q: Quat, v: Vec3) -> Vec3:
 
 
 def quat_angle_rad(a: Quat, b: Quat) -> float:
-    """Rotation angle between two unit quaternions (sign-insensitive), in [0, pi]."""
-    d = abs(a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3])
-    return 2.0 * math.acos(min(1.0, d))
+    """Rotation angle between two quaternions (sign- and scale-insensitive), in [0, pi].
+
+    Computed as 2 atan2(|vec(a* ⊗ b)|, |w(a* ⊗ b)|): accurate for tiny angles, where the
+    usual acos of the dot product loses half the digits.
+    """
+    d = quat_mul(quat_conj(a), b)
+    return 2.0 * math.atan2(math.sqrt(d[1] * d[1] + d[2] * d[2] + d[3] * d[3]), abs(d[0]))
 
 
 def quat_from_axis_angle(axis: Vec3, angle_rad: float) -> Quat:

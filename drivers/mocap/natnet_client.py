@@ -366,19 +366,35 @@ class NatNetClient:
     def stats(self) -> MocapStats:
         return self.monitor.snapshot()
 
-    def wait_frames(self, count: int, timeout_s: float) -> bool:
-        """Block until ``count`` more frames have arrived; False on timeout."""
+    @property
+    def frames_seen(self) -> int:
+        """Frames (reports) received so far; pair with :meth:`wait_for_total`."""
+        return self._frames_seen
+
+    def wait_for_total(self, total: int, timeout_s: float) -> bool:
+        """Block until ``total`` frames have been received in all; False on timeout."""
         deadline = time.monotonic() + timeout_s
         with self._cond:
-            target = self._frames_seen + count
-            while self._frames_seen < target:
+            while self._frames_seen < total:
                 left = deadline - time.monotonic()
                 if left <= 0.0:
                     return False
                 self._cond.wait(left)
         return True
 
+    def wait_frames(self, count: int, timeout_s: float) -> bool:
+        """Block until ``count`` more frames arrive after this call; False on timeout."""
+        return self.wait_for_total(self._frames_seen + count, timeout_s)
+
     # ------------------------------------------------------------------ info
+
+    @property
+    def local_address(self) -> tuple[str, int] | None:
+        """Address of the command socket (where unicast frames arrive)."""
+        if self._cmd is None:
+            return None
+        host, port = self._cmd.getsockname()
+        return (str(host), int(port))
 
     @property
     def server_info(self) -> natnet.ServerInfo | None:

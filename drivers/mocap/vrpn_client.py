@@ -250,17 +250,25 @@ class VrpnClient:
     def stats(self) -> MocapStats:
         return self.monitor.snapshot()
 
-    def wait_frames(self, count: int, timeout_s: float) -> bool:
-        """Block until ``count`` more reports of the configured sensor arrived."""
+    @property
+    def frames_seen(self) -> int:
+        """Frames (reports) received so far; pair with :meth:`wait_for_total`."""
+        return self._reports
+
+    def wait_for_total(self, total: int, timeout_s: float) -> bool:
+        """Block until ``total`` frames have been received in all; False on timeout."""
         deadline = time.monotonic() + timeout_s
         with self._cond:
-            target = self._reports + count
-            while self._reports < target:
+            while self._reports < total:
                 left = deadline - time.monotonic()
                 if left <= 0.0:
                     return False
                 self._cond.wait(left)
         return True
+
+    def wait_frames(self, count: int, timeout_s: float) -> bool:
+        """Block until ``count`` more frames arrive after this call; False on timeout."""
+        return self.wait_for_total(self._reports + count, timeout_s)
 
     def trackers(self) -> list[str]:
         """Sender (tracker) names the server has announced."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import struct
 
@@ -68,10 +69,8 @@ def test_that_random_stream_bytes_only_ever_raise_the_decode_error(data: bytes,
     try:
         for m in VrpnStreamParser(expect_cookie=cookie).feed(data):
             for fn in (vrpn.decode_description, vrpn.decode_pos_quat):
-                try:
+                with contextlib.suppress(VrpnDecodeError):
                     fn(m.payload)
-                except VrpnDecodeError:
-                    pass
     except VrpnDecodeError:
         pass
 
