@@ -672,6 +672,11 @@ class FlightCtrl:
                 raise self._lost
             return ok
 
+    def start(self) -> FlightCtrl:
+        """Start the reader thread (``identify``/``connect`` do it); idempotent."""
+        self._ensure_reader()
+        return self
+
     def _ensure_reader(self) -> None:
         if self._reader is None:
             self._reader = threading.Thread(target=self._read_loop, daemon=True,

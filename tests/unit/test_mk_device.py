@@ -1,0 +1,171 @@
+"""FlightCtrl receive path on a loopback transport with an injected clock."""
+
+from __future__ import annotations
+
+import itertools
+
+import pytest
+
+from drivers.mikrokopter import FlightCtrl, FlightCtrlConfig, ImuAxes, ImuSample, MotorState
+from drivers.mikrokopter import framing_tk3 as tk3
+from drivers.mikrokopter import messages as mkm
+from drivers.transport import LoopTransport
+
+MS = 1_000_000
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.t_ns = 1_000 * MS
+
+    def __call__(self) -> int:
+        return self.t_ns
+
+
+def _imu(seq: int, gz: float = 0.0) -> bytes:
+    return tk3.encode_frame(mkm.ImuMessage(seq & 0xFF, (0.0, 0.0, 9.81), (0.0, 0.0, gz)).encode())
+
+
+@pytest.fixture
+def link() -> tuple[FlightCtrl, LoopTransport, FakeClock]:
+    wire = LoopTransport("loop://test", read_timeout_s=0.01)
+    clock = FakeClock()
+    fc = FlightCtrl(wire, FlightCtrlConfig(imu_axes=ImuAxes(axis=(1, 0, 2), sign=(1, 1, -1))),
+                    clock=clock)
+    fc.start()
+    yield fc, wire, clock
+    fc.close()
+
+
+def _push(fc: FlightCtrl, wire: LoopTransport, clock: FakeClock, frame: bytes, t_ms: float
+          ) -> ImuSample | None:
+    clock.t_ns = 1_000 * MS + round(t_ms * MS)
+    before = fc.link_stats()
+    wire.write(frame)
+    sample = fc.wait_next(0.5)
+    if sample is None:  # rejected: make sure the reader has processed it
+        for _ in range(100):
+            after = fc.link_stats()
+            if after.frames > before.frames:
+                break
+            fc.wait_next(0.01)
+    return sample
+
+
+def test_that_sample_times_are_rebuilt_from_sequence_numbers(
+        link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
+    fc, wire, clock = link
+    # arrival jitter of up to 0.7 ms; the rebuilt times keep the 2 ms grid, give or take the
+    # 100 ppm per sample the offset may drift up to follow a slower board clock
+    times = [_push(fc, wire, clock, _imu(i), 2.0 * i + (0.7 if i % 2 else 0.0))
+             for i in range(10)]
+    assert all(s is not None for s in times)
+    t = [s.t_ns for s in times if s is not None]
+    assert all(abs(b - a - 2 * MS) <= 2 * MS // 10_000 for a, b in itertools.pairwise(t))
+    assert t[-1] - t[0] == pytest.approx(18 * MS, abs=2 * MS // 1_000)
+    assert [s.seq for s in times if s is not None] == list(range(10))
+
+
+def test_that_a_short_gap_is_accepted_and_counted_as_missing(
+        link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
+    fc, wire, clock = link
+    _push(fc, wire, clock, _imu(0), 0.0)
+    _push(fc, wire, clock, _imu(1), 2.0)
+    s = _push(fc, wire, clock, _imu(4), 8.0)  # two samples lost on the wire
+    assert s is not None and s.seq == 4
+    assert s.t_ns - 1_000 * MS == 8 * MS
+    assert fc.link_stats().imu.missing == 2
+
+
+def test_that_a_corrupted_sequence_number_is_dropped_without_losing_the_stream(
+        link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
+    fc, wire, clock = link
+    for i in range(3):
+        _push(fc, wire, clock, _imu(i), 2.0 * i)
+    # seq byte hit by noise: 2 -> 0x47, arriving one period later
+    assert _push(fc, wire, clock, _imu(0x47), 6.0) is None
+    s = _push(fc, wire, clock, _imu(4), 8.0)
+    assert s is not None and s.seq == 4
+    stats = fc.link_stats()
+    assert stats.seq_rejected == 1 and stats.resyncs == 0
+
+
+def test_that_a_long_outage_resynchronises_on_two_consecutive_samples(
+        link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
+    fc, wire, clock = link
+    _push(fc, wire, clock, _imu(0), 0.0)
+    assert _push(fc, wire, clock, _imu(100), 200.0) is None  # 99 lost: suspect
+    s = _push(fc, wire, clock, _imu(101), 202.0)
+    assert s is not None and s.seq == 101
+    assert s.t_ns - 1_000 * MS == 202 * MS
+    assert fc.link_stats().resyncs == 1
+
+
+def test_that_wrong_lengths_and_out_of_range_values_never_reach_the_caller(
+        link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
+    fc, wire, clock = link
+    _push(fc, wire, clock, _imu(0), 0.0)
+    short = tk3.encode_frame(mkm.ImuMessage(1, (0, 0, 9.81), (0, 0, 0)).encode()[:-1])
+    assert _push(fc, wire, clock, short, 2.0) is None
+    assert _push(fc, wire, clock, _imu(1, gz=30.0), 2.0) is None  # beyond the gyro full scale
+    stats = fc.link_stats()
+    assert (stats.malformed, stats.implausible) == (1, 1)
+
+
+def test_that_the_imu_axes_map_board_to_body(
+        link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
+    fc, wire, clock = link
+    frame = tk3.encode_frame(mkm.ImuMessage(0, (1.0, 2.0, 3.0), (0.1, 0.2, 0.3)).encode())
+    s = _push(fc, wire, clock, frame, 0.0)
+    assert s is not None
+    assert s.accel_m_s2 == (2.0, 1.0, -3.0)
+    assert s.gyro_rad_s == (0.2, 0.1, -0.3)
+
+
+def test_that_the_loop_gets_the_newest_sample_and_stale_ones_are_counted(
+        link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
+    fc, wire, clock = link
+    _push(fc, wire, clock, _imu(0), 0.0)
+    wire.write(b"".join(_imu(i) for i in range(1, 6)))  # the loop was busy for 5 samples
+    newest = None
+    for _ in range(100):
+        s = fc.wait_next(0.05)
+        newest = s or newest
+        if newest is not None and newest.seq == 5:
+            break
+    assert newest is not None and newest.seq == 5
+    assert fc.wait_next(0.01) is None  # nothing is queued behind it
+    assert fc.link_stats().imu_overwritten >= 1
+
+
+def test_that_motor_frames_become_typed_states(
+        link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
+    fc, wire, _ = link
+    frames = [mkm.MotorMessage(0, 1, False, True, False, 5000, 400, 1.5),
+              mkm.MotorMessage(0, 2, True, False, False, 0, 0, 0.0),
+              mkm.MotorMessage(0, 3, False, False, True, 32767, 100, 0.3)]
+    wire.write(b"".join(tk3.encode_frame(f.encode()) for f in frames))
+    snap = None
+    for _ in range(100):
+        snap = fc.wait_motor_update(0.05)
+        if snap is not None and snap.motors[2] is not None:
+            break
+    assert snap is not None
+    m1, m2, m3 = snap.motors[:3]
+    assert m1 is not None and m1.state == MotorState.SPINNING and m1.speed_hz == 100.0
+    assert m1.current_a == 1.5
+    assert m2 is not None and m2.state == MotorState.EMERGENCY
+    assert m3 is not None and m3.state == MotorState.STARTING
+    assert snap.any_emergency and not snap.all_spinning
+
+
+def test_that_spin_rates_are_sent_as_one_w_frame_with_the_configured_directions() -> None:
+    wire = LoopTransport("loop://w")
+    fc = FlightCtrl(wire, FlightCtrlConfig(spin_directions=(1, -1, 1, -1, 1, -1)))
+    fc.send_rotor_speeds_hz([100.0, 100.0, 80.0, 80.0, 60.0, 60.0])
+    assert wire.read(100) == bytes.fromhex("5e 77 13 88 ec 78 18 6a e7 96 20 8d df 73 24")
+    with pytest.raises(ValueError, match="expected 6 spin rates"):
+        fc.send_rotor_speeds_hz([50.0] * 5)
+    with pytest.raises(ValueError):
+        fc.send_rotor_speeds_hz([50.0] * 5 + [float("nan")])
+    fc.close()
