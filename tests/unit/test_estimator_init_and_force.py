@@ -41,10 +41,11 @@ def test_that_a_moving_vehicle_is_not_mistaken_for_one_at_rest() -> None:
     assert HealthFlag.NOT_INITIALIZED in state.health.flags
 
 
-def force_flight(cfg: EstimatorConfig, feed_force: bool) -> tuple[sy.Scenario, sy.RunLog]:
+def force_flight(cfg: EstimatorConfig, feed_force: bool, duration_s: float = 12.0
+                 ) -> tuple[sy.Scenario, sy.RunLog]:
     # paper-calibrated disturbance: 0.3 N tether + OU force 0.3 N rms, tau 1 s
     force = sy.ExternalForce(constant_w_n=(0.3, 0.0, 0.0), ou_sigma_n=0.3, ou_tau_s=1.0)
-    sc = sy.make_scenario(sy.lively(), 12.0, sy.PAPER_IMU, sy.PAPER_MOCAP, seed=23,
+    sc = sy.make_scenario(sy.lively(), duration_s, sy.PAPER_IMU, sy.PAPER_MOCAP, seed=23,
                           force=force, mass_kg=cfg.mass_kg)
     est = Ukf(cfg)
     tr = sc.truth
@@ -65,7 +66,7 @@ def test_that_the_force_observer_tracks_the_external_force_within_0_1_n() -> Non
 
 
 def test_that_the_force_observer_can_be_switched_off_and_waits_for_a_command() -> None:
-    sc, off = force_flight(EstimatorConfig(force_observer=False), feed_force=True)
+    _, off = force_flight(EstimatorConfig(force_observer=False), True, duration_s=1.0)
     assert np.all(off.force_ext_w_n[off.initialized] == 0.0)
-    sc, no_cmd = force_flight(EstimatorConfig(), feed_force=False)
+    _, no_cmd = force_flight(EstimatorConfig(), False, duration_s=1.0)
     assert np.all(no_cmd.force_ext_w_n[no_cmd.initialized] == 0.0)
