@@ -121,7 +121,7 @@ class NatNetClient:
         self._names_by_id: dict[int, str] = {}
         self._body_id: int | None = None
         self._latest: PoseSample | None = None
-        self._latest_by_id: dict[int, PoseSample] = {}
+        self._last_frame_times: tuple[int, int, float] = (0, 0, math.nan)
         self._last_frame: natnet.FrameOfData | None = None
         self._response: natnet.Response | natnet.UnrecognizedRequest | None = None
         self._frames_seen = 0
@@ -325,19 +325,16 @@ class NatNetClient:
             + self.config.network_delay_s
         t_ns = rx_t_ns - round(latency_s * 1e9)
         self.monitor.on_frame(frame.frame_number, rx_t_ns, latency_s)
-        by_id = {}
-        for rb in frame.rigid_bodies:
-            by_id[rb.body_id] = self._sample(rb, rb.body_id, frame.frame_number, rx_t_ns, t_ns,
-                                             latency_s)
         bid = self._body_id
         main = None
         if bid is not None:
-            main = by_id.get(bid) or self._sample(None, bid, frame.frame_number, rx_t_ns, t_ns,
-                                                  latency_s)
+            # Only the configured body is converted here; others on demand (latest_of).
+            rb = next((b for b in frame.rigid_bodies if b.body_id == bid), None)
+            main = self._sample(rb, bid, frame.frame_number, rx_t_ns, t_ns, latency_s)
             self.monitor.on_sample(main)
         with self._cond:
             self._last_frame = frame
-            self._latest_by_id = by_id
+            self._last_frame_times = (rx_t_ns, t_ns, latency_s)
             self._latest = main
             self._frames_seen += 1
             self._cond.notify_all()
@@ -351,17 +348,16 @@ class NatNetClient:
         return self._latest
 
     def latest_of(self, name: str) -> PoseSample | None:
-        """Any defined rigid body in the newest frame, by name."""
+        """Any defined rigid body in the newest frame, by name (None if not defined or no
+        frame yet)."""
         with self._cond:
             ids = self._models.body_ids_by_name() if self._models else {}
-            if name not in ids:
-                return None
-            bid = ids[name]
-            frame = self._last_frame
-            s = self._latest_by_id.get(bid)
-        if s is None and frame is not None:
-            return self._sample(None, bid, frame.frame_number, 0, 0, math.nan)
-        return s
+            frame, times = self._last_frame, self._last_frame_times
+        if name not in ids or frame is None:
+            return None
+        bid = ids[name]
+        rb = next((b for b in frame.rigid_bodies if b.body_id == bid), None)
+        return self._sample(rb, bid, frame.frame_number, *times)
 
     def stats(self) -> MocapStats:
         return self.monitor.snapshot()
