@@ -1,0 +1,200 @@
+"""The flying simulator: physics from first principles against the model, contact, sensors."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from controller.model import VehicleModel, cardan_tilts_rad
+from groundstation.configs import load_disturbances, load_vehicle
+from sim_backend.simulator import FastHexSimulator, cardan_tilts
+from sim_backend.vehicle import EmulatedVehicle
+
+PARAMS = load_vehicle("fasthex")
+MODEL = VehicleModel(PARAMS)
+IDEAL = load_disturbances("ideal")
+CALIBRATED = load_disturbances("paper-calibrated")
+
+
+def _hover_spins(alpha_rad: float) -> list[float]:
+    return [float(w) for w in MODEL.spin_from_thrust(MODEL.hover_thrusts(alpha_rad))]
+
+
+def test_that_the_simulator_is_an_emulated_vehicle() -> None:
+    assert isinstance(FastHexSimulator(PARAMS, IDEAL), EmulatedVehicle)
+
+
+@pytest.mark.parametrize("alpha_deg", [0.0, 7.3, 20.0, 34.9])
+def test_that_the_plain_float_cardan_chain_matches_the_model(alpha_deg: float) -> None:
+    # Fixture
+    k, bend = PARAMS.tilt.worm_ratio, math.radians(PARAMS.tilt.cardan_bend_deg)
+    # Test / Assert
+    assert cardan_tilts(math.radians(alpha_deg), k, math.cos(bend)) == pytest.approx(
+        list(cardan_tilts_rad(math.radians(alpha_deg), k, bend)), abs=1e-12)
+
+
+def test_that_it_rests_on_the_ground_with_motors_off_and_the_imu_reads_gravity() -> None:
+    # Fixture
+    sut = FastHexSimulator(PARAMS, IDEAL, start_pos_w_m=(1.0, 2.0, 0.1))
+    # Test
+    sut.advance(1.0)
+    # Assert
+    assert sut.landed
+    assert sut.true_pose().pos_w_m == (1.0, 2.0, 0.1)
+    imu = sut.read_imu()
+    assert imu.accel_m_s2 == pytest.approx((0.0, 0.0, 9.81))
+    assert imu.gyro_rad_s == (0.0, 0.0, 0.0)
+    assert sut.now_s() == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("alpha_deg", [0.0, 30.0])
+def test_that_the_per_propeller_wrench_equals_the_allocation_model(alpha_deg: float) -> None:
+    # Fixture: ideal preset = the controller's model; lift off with some spin difference
+    alpha = math.radians(alpha_deg)
+    sut = FastHexSimulator(PARAMS, IDEAL)
+    sut.command_tilt_rad(alpha)
+    sut.advance(alpha / math.radians(10.0) + 0.1)  # let the servo get there
+    spins = [w * f for w, f in zip(_hover_spins(alpha), (1.06, 1.0, 1.03, 1.0, 1.05, 1.01),
+                                   strict=True)]
+    sut.command_rotor_speeds_hz(spins)
+    # Test: one short step from rest
+    s0 = sut.state()
+    sut.advance(1e-3)
+    s1 = sut.state()
+    # Assert: accelerations = the model's F u (body = world here, level start)
+    wrench = MODEL.allocation(alpha) @ MODEL.thrust_from_spin(spins)
+    acc = [(b - a) / 1e-3 for a, b in zip(s0.vel_w_m_s, s1.vel_w_m_s, strict=True)]
+    domega = [(b - a) / 1e-3 for a, b in zip(s0.omega_b_rad_s, s1.omega_b_rad_s, strict=True)]
+    assert acc == pytest.approx([wrench[0] / 3.1, wrench[1] / 3.1, wrench[2] / 3.1 - 9.81],
+                                rel=1e-3, abs=1e-3)
+    assert domega == pytest.approx(list(wrench[3:] / np.array(PARAMS.inertia_diag_kg_m2)),
+                                   rel=1e-3, abs=1e-3)
+
+
+def test_that_it_lifts_off_climbs_and_lands_at_rest() -> None:
+    # Fixture
+    sut = FastHexSimulator(PARAMS, IDEAL)
+    hover = _hover_spins(0.0)
+    # Test: 3 % more thrust than hover for 1 s, then 10 % less until it lands
+    sut.command_rotor_speeds_hz([w * 1.015 for w in hover])
+    sut.advance(1.0)
+    climbed = sut.true_pose().pos_w_m[2]
+    sut.command_rotor_speeds_hz([w * 0.95 for w in hover])
+    for _ in range(500):
+        sut.advance(0.01)
+        if sut.landed:
+            break
+    # Assert: z = 0.1 + a t^2 / 2 with a = (1.015^2 - 1) g
+    assert climbed - 0.1 == pytest.approx(0.5 * (1.015**2 - 1.0) * 9.81, rel=1e-2)
+    assert sut.landed
+    assert len(sut.touchdown_speeds_m_s) == 1 and sut.touchdown_speeds_m_s[0] > 0.0
+    assert sut.state().vel_w_m_s == (0.0, 0.0, 0.0)
+    assert sut.true_pose().pos_w_m[2] == pytest.approx(0.1)
+
+
+def test_that_rotor_speeds_lag_with_the_configured_time_constant() -> None:
+    # Fixture
+    sut = FastHexSimulator(PARAMS, CALIBRATED)
+    # Test
+    sut.command_rotor_speeds_hz([50.0] * 6)
+    sut.advance(0.03)
+    # Assert: 1 - 1/e after one time constant
+    assert sut.rotor_speeds_hz() == pytest.approx([50.0 * (1.0 - math.exp(-1.0))] * 6, rel=1e-6)
+
+
+def test_that_the_servo_moves_at_the_tilt_rate_limit_and_the_cardan_chain_bends_tilts() -> None:
+    # Fixture
+    sut = FastHexSimulator(PARAMS, CALIBRATED)
+    # Test
+    sut.command_tilt_rad(math.radians(30.0))
+    sut.advance(1.0)
+    mid = sut.tilt_rad()
+    sut.advance(3.0)
+    # Assert
+    assert math.degrees(mid) == pytest.approx(10.0, abs=1e-6)
+    assert math.degrees(sut.tilt_rad()) == pytest.approx(30.0)
+    tilts = np.degrees(np.abs(sut.propeller_tilts_rad()))
+    assert np.max(np.abs(tilts - 30.0)) > 0.05  # the chain makes them differ
+    assert np.max(np.abs(tilts - 30.0)) < 1.05
+
+
+def test_that_same_seeds_fly_the_same_and_different_seeds_differ() -> None:
+    # Fixture
+    def fly(seed: int) -> tuple[float, ...]:
+        sut = FastHexSimulator(PARAMS, CALIBRATED, seed=seed)
+        sut.command_rotor_speeds_hz([w * 1.02 for w in _hover_spins(0.0)])
+        sut.advance(1.5)
+        return sut.true_pose().pos_w_m + sut.read_imu().gyro_rad_s
+
+    # Test / Assert
+    assert fly(3) == fly(3)
+    assert fly(3) != fly(4)
+
+
+def test_that_the_ou_force_has_the_configured_rms() -> None:
+    # Fixture: only the OU force, sampled after each step while resting in the air
+    preset = dataclasses.replace(IDEAL, ou_force_rms_n=0.3, ou_force_tau_s=0.05)
+    sut = FastHexSimulator(PARAMS, preset, seed=1)
+    sut.command_rotor_speeds_hz(_hover_spins(0.0))
+    samples = []
+    for _ in range(4000):
+        sut.advance(0.01)
+        samples.append(sut.external_force_w_n())
+    # Assert: rms of the vector ~0.3 N (2000 correlation times -> ~3 % sampling error)
+    rms = math.sqrt(float(np.mean(np.sum(np.square(samples), axis=1))))
+    assert rms == pytest.approx(0.3, rel=0.1)
+
+
+def test_that_tilting_rotors_exert_gyroscopic_torques_that_cancel_only_when_symmetric(
+        ) -> None:
+    # Fixture: the same airborne flight with and without rotor inertia, tilting at 10 deg/s
+    def omega_after_tilting(inertia: float, boost: tuple[float, ...]) -> np.ndarray:
+        sut = FastHexSimulator(PARAMS, dataclasses.replace(IDEAL, rotor_inertia_kg_m2=inertia))
+        sut.command_rotor_speeds_hz([w * b for w, b in zip(_hover_spins(0.0), boost,
+                                                           strict=True)])
+        sut.advance(0.05)
+        sut.command_tilt_rad(math.radians(30.0))
+        sut.advance(0.2)
+        return np.array(sut.state().omega_b_rad_s)
+
+    symmetric = (1.05,) * 6
+    one_fast = (1.2, 1.05, 1.05, 1.05, 1.05, 1.05)
+    # Test
+    sym = omega_after_tilting(1.5e-4, symmetric) - omega_after_tilting(0.0, symmetric)
+    asym = omega_after_tilting(1.5e-4, one_fast) - omega_after_tilting(0.0, one_fast)
+    # Assert: alternating spins and tilts cancel the rotors' momenta; one faster rotor leaves
+    # I_r 2 pi dw alpha_dot ~ 2e-3 N m (-> ~5e-3 rad/s after 0.2 s), plus the w x h coupling
+    # of the unbalanced momentum with the rates the thrust imbalance causes
+    assert np.max(np.abs(sym)) < 1e-9
+    assert 1e-3 < np.max(np.abs(asym)) < 0.1
+
+
+def test_that_mocap_frames_come_at_the_rate_with_latency_and_dropouts() -> None:
+    # Fixture
+    preset = dataclasses.replace(CALIBRATED, mocap_dropout_prob=0.1)
+    sut = FastHexSimulator(PARAMS, preset, seed=2)
+    # Test
+    frames = []
+    for _ in range(2000):
+        sut.advance(0.002)
+        for f in sut.poll_mocap():
+            assert sut.now_s() - f.t_s >= 0.01 - 1e-9  # latency honoured
+            frames.append(f)
+    # Assert: 4 s at 100 Hz minus ~10 % dropped, sub-mm noise around the true pose
+    assert 330 <= len(frames) <= 390
+    assert sut.mocap.dropped == sut.mocap.captured - len(frames) - len(sut.mocap._pending)
+    err = [math.dist(f.pos_w_m, (0.0, 0.0, 0.1)) for f in frames]
+    assert 0.0 < float(np.mean(err)) < 0.002
+
+
+def test_that_imu_noise_matches_the_noise_density() -> None:
+    # Fixture
+    sut = FastHexSimulator(PARAMS, CALIBRATED, seed=5)
+    # Test
+    g = np.array([sut.read_imu().gyro_rad_s for _ in range(5000)])
+    # Assert: std = density * sqrt(rate / 2); mean = the constant bias
+    assert np.std(g, axis=0) == pytest.approx([8.7e-4 * math.sqrt(250.0)] * 3, rel=0.05)
+    assert np.mean(g, axis=0) == pytest.approx(sut.imu.gyro_bias_rad_s, abs=1e-3)
