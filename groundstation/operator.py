@@ -136,6 +136,7 @@ class SensorHealth:
     motors_ok: bool = True  # BL-Ctrls answering, rotor speeds as commanded
     servo_ok: bool = True  # tilt servo answering, angle agrees with the command
     battery_ok: bool = True  # above the minimum voltage
+    geofence_ok: bool = True  # inside the session's geofence box
     preflight_ok: bool = False  # every preflight check passed: arming allowed
 
 

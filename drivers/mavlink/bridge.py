@@ -277,7 +277,8 @@ class MavlinkBridge:
         drops counted); phase changes and health changes become status events here."""
         h = tel.health
         health = {"imu": h.imu_ok, "mocap": h.mocap_ok, "estimator": h.estimator_ok,
-                  "motors": h.motors_ok, "servo": h.servo_ok, "battery": h.battery_ok}
+                  "motors": h.motors_ok, "servo": h.servo_ok, "battery": h.battery_ok,
+                  "geofence": h.geofence_ok}
         with self._lock:
             new: list[StatusEvent] = []
             if self._prev_phase is not None and tel.phase is not self._prev_phase:
@@ -310,9 +311,12 @@ class MavlinkBridge:
 
     # -- servicing -----------------------------------------------------------------------
 
-    def step(self, now_s: float | None = None) -> None:
+    def step(self, now_s: float | None = None, wait_s: float = 0.0) -> None:
         """One service pass: act on every datagram waiting, then send what is due at
-        ``now_s`` (the bridge clock when None). Never blocks."""
+        ``now_s`` (the bridge clock when None). Blocks only when ``wait_s`` > 0: then it
+        first waits up to ``wait_s`` for a datagram (a lockstep owner waiting on the GCS)."""
+        if wait_s > 0.0:
+            self._endpoint.wait_readable(wait_s)
         now = self._clock() if now_s is None else now_s
         with self._step_lock:
             for data in self._endpoint.recv_all():

@@ -10,7 +10,8 @@ HEARTBEAT
 SYS_STATUS
     battery voltage (mV; UINT16_MAX when unknown), and per sensor present/enabled/health bits:
     IMU -> 3D_GYRO | 3D_ACCEL, MoCap -> VISION_POSITION, UKF -> AHRS, BL-Ctrls ->
-    MOTOR_OUTPUTS, tilt servo -> PROPULSION, battery -> BATTERY, preflight -> PREARM_CHECK.
+    MOTOR_OUTPUTS, tilt servo -> PROPULSION, battery -> BATTERY, geofence -> GEOFENCE,
+    preflight -> PREARM_CHECK.
 ATTITUDE / ATTITUDE_QUATERNION
     body FRD -> NED attitude; roll/pitch/yaw (ZYX) and the quaternion; body rates in FRD.
 LOCAL_POSITION_NED
@@ -53,6 +54,7 @@ SENSOR_BITS: tuple[tuple[str, int], ...] = (
     ("motors_ok", M.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS),
     ("servo_ok", M.MAV_SYS_STATUS_SENSOR_PROPULSION),
     ("battery_ok", M.MAV_SYS_STATUS_SENSOR_BATTERY),
+    ("geofence_ok", M.MAV_SYS_STATUS_GEOFENCE),
     ("preflight_ok", M.MAV_SYS_STATUS_PREARM_CHECK),
 )
 SENSORS_PRESENT = 0
@@ -83,7 +85,8 @@ def system_status(tel: VehicleTelemetry) -> int:
         return int(M.MAV_STATE_STANDBY)
     h = tel.health
     if tel.phase is FlightPhase.LANDING and not (h.imu_ok and h.mocap_ok and h.estimator_ok
-                                                  and h.motors_ok and h.battery_ok):
+                                                  and h.motors_ok and h.battery_ok
+                                                  and h.geofence_ok):
         return int(M.MAV_STATE_CRITICAL)
     return int(M.MAV_STATE_ACTIVE)
 
