@@ -111,7 +111,7 @@ def flight_metrics(rows: np.ndarray, *, min_spin_hz: float | None = None,
         out[f"{name}_duration_s"] = n * dt
 
         def mean(x: FloatArray, mask: BoolArray = m) -> float:
-            return float(np.mean(x[mask])) if n else math.nan
+            return float(np.mean(x[mask])) if mask.any() else math.nan
 
         out[f"{name}_pos_err_mean_mm"] = 1000.0 * mean(pos_err)
         out[f"{name}_pos_err_max_mm"] = 1000.0 * float(np.max(pos_err[m])) if n else math.nan

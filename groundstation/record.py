@@ -148,23 +148,29 @@ class RecordWriter:
 
 def read_record(path: str | Path) -> FlightRecord:
     """Read a record file (also one still being written, or cut short by a crash)."""
-    data = Path(path).read_bytes()
+    return parse_record(Path(path).read_bytes(), str(path))
+
+
+def parse_record(data: bytes, path: str = "<bytes>") -> FlightRecord:
+    """Parse the bytes of a record file; :class:`RecordFormatError` for anything else."""
     if len(data) < 12 or data[:8] != MAGIC:
         raise RecordFormatError(f"{path}: not a fasthex flight record (bad magic)")
     (n,) = struct.unpack("<I", data[8:12])
     try:
         header = json.loads(data[12:12 + n].decode())
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise RecordFormatError(f"{path}: corrupt record header ({exc})") from None
-    if not isinstance(header, dict) or header.get("format") != FORMAT \
-            or header.get("version") != VERSION:
-        raise RecordFormatError(f"{path}: unsupported record format/version")
-    try:
+        if not isinstance(header, dict) or header.get("format") != FORMAT \
+                or header.get("version") != VERSION:
+            raise RecordFormatError(f"{path}: unsupported record format/version")
         dtype = np.dtype([(f[0], f[1], tuple(f[2])) if len(f) > 2 else (f[0], f[1])
                           for f in header["dtype"]])
-    except (TypeError, ValueError, KeyError) as exc:
-        raise RecordFormatError(f"{path}: bad row description ({exc})") from None
+        metadata = dict(header.get("metadata", {}))
+    except RecordFormatError:
+        raise
+    except (UnicodeDecodeError, ValueError, TypeError, KeyError, IndexError) as exc:
+        raise RecordFormatError(f"{path}: corrupt record header ({exc})") from None
+    if dtype.itemsize == 0 or 12 + n > len(data):
+        raise RecordFormatError(f"{path}: corrupt record header (no rows described)")
     body = data[12 + n:]
     count = len(body) // dtype.itemsize
     rows = np.frombuffer(body[:count * dtype.itemsize], dtype=dtype)
-    return FlightRecord(dict(header.get("metadata", {})), rows)
+    return FlightRecord(metadata, rows)

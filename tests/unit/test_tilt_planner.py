@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import pytest
@@ -18,7 +19,7 @@ def test_that_the_command_moves_at_the_rate_limit_and_stays_within_the_range() -
     # Test: ask for 50 deg (beyond 35) for 5 s at 500 Hz
     cmds = [sut.step(k * 0.002, math.radians(50.0)) for k in range(2501)]
     # Assert
-    rates = [(b - a) / 0.002 for a, b in zip(cmds, cmds[1:], strict=False)]
+    rates = [(b - a) / 0.002 for a, b in itertools.pairwise(cmds)]
     assert max(rates) <= math.radians(10.0) + 1e-9
     assert cmds[500] == pytest.approx(math.radians(10.0), abs=1e-9)
     assert cmds[-1] == pytest.approx(math.radians(35.0))

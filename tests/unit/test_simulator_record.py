@@ -1,0 +1,149 @@
+"""The flight record (written incrementally, survives kill -9) and the phase-split metrics."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from controller.reference import quat_from_euler_zyx
+from groundstation.metrics import flight_metrics, phase_masks
+from groundstation.record import (
+    MAGIC,
+    RECORD_DTYPE,
+    RecordFormatError,
+    RecordWriter,
+    parse_record,
+    read_record,
+)
+
+
+def _row(t: float, **kw: object) -> tuple[object, ...]:
+    vals: dict[str, object] = {name: 0 for name in RECORD_DTYPE.names or ()}
+    for name in RECORD_DTYPE.names or ():
+        shape = RECORD_DTYPE[name].shape
+        if shape:
+            vals[name] = (0.0,) * shape[0]
+    vals.update({"t_s": t, "q_wr": (1.0, 0, 0, 0), "q_wd": (1.0, 0, 0, 0),
+                 "q_wb": (1.0, 0, 0, 0), "est_q_wb": (1.0, 0, 0, 0), "eta_f": 1.0,
+                 "measured": 1, "spin_cmd_hz": (70.0,) * 6})
+    vals.update(kw)
+    return tuple(vals[n] for n in RECORD_DTYPE.names or ())
+
+
+def test_that_a_record_round_trips_with_its_metadata(tmp_path: Path) -> None:
+    # Fixture
+    path = tmp_path / "flight.rec"
+    # Test
+    with RecordWriter(path, {"mission": "m", "seed": 3}) as w:
+        for k in range(123):
+            w.append(_row(k * 0.002, pos_w_m=(k, 2.0, 3.0)))
+    rec = read_record(path)
+    # Assert
+    assert rec.metadata == {"mission": "m", "seed": 3}
+    assert len(rec) == 123
+    assert rec.rows["pos_w_m"][122] == pytest.approx((122.0, 2.0, 3.0))
+    assert rec.rows["t_s"][-1] == pytest.approx(0.244)
+
+
+def test_that_rows_reach_the_file_every_flush_period_while_flying(tmp_path: Path) -> None:
+    # Fixture
+    path = tmp_path / "flight.rec"
+    w = RecordWriter(path, flush_rows=50)
+    # Test: 120 rows, not closed
+    for k in range(120):
+        w.append(_row(k * 0.002))
+    on_disk = read_record(path)
+    # Assert: at most the last 50 rows (100 ms at 500 Hz) are pending
+    assert len(on_disk) == 100
+    assert len(w.close()) == 120
+
+
+def test_that_a_kill_9_loses_at_most_the_last_100_ms(tmp_path: Path) -> None:
+    # Fixture: a writer process that kills itself without any cleanup
+    path = tmp_path / "killed.rec"
+    script = (
+        "import os, signal\n"
+        "from groundstation.record import RecordWriter, RECORD_DTYPE\n"
+        "import numpy as np\n"
+        f"w = RecordWriter({str(path)!r}, {{'x': 1}})\n"
+        "row = np.zeros(1, RECORD_DTYPE)[0].item()\n"
+        "for k in range(1234):\n"
+        "    w.append((k * 0.002,) + row[1:])\n"
+        "os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
+    # Test
+    proc = subprocess.run([sys.executable, "-c", script], check=False, timeout=120)
+    rec = read_record(path)
+    # Assert
+    assert proc.returncode == -9
+    assert 1234 - 50 < len(rec) <= 1234
+    assert rec.rows["t_s"][-1] == pytest.approx((len(rec) - 1) * 0.002)
+
+
+def test_that_a_partial_last_row_is_ignored(tmp_path: Path) -> None:
+    path = tmp_path / "cut.rec"
+    with RecordWriter(path) as w:
+        for k in range(10):
+            w.append(_row(k * 0.002))
+    data = path.read_bytes()
+    assert len(parse_record(data[:-7])) == 9
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=400), st.booleans())
+def test_that_random_bytes_never_raise_anything_but_a_format_error(data: bytes,
+                                                                   magic: bool) -> None:
+    blob = (MAGIC + data) if magic else data
+    with contextlib.suppress(RecordFormatError):
+        parse_record(blob)
+
+
+def _flight(alpha_deg: list[float], ref_deg: list[float], **kw: object) -> np.ndarray:
+    rows = [_row(k * 0.002, alpha_rad=math.radians(a), alpha_ref_rad=math.radians(r), **kw)
+            for k, (a, r) in enumerate(zip(alpha_deg, ref_deg, strict=True))]
+    return np.array(rows, dtype=RECORD_DTYPE)
+
+
+def test_that_phases_skip_two_seconds_after_entry_and_after_alpha_steps() -> None:
+    # Fixture: 10 s at 0 deg, step to 30 deg at 10 s, tilt reaches 30 deg at 13 s
+    n = 10_000
+    t = np.arange(n) * 0.002
+    ref = np.where(t >= 10.0, 30.0, 0.0)
+    alpha = np.clip((t - 10.0) * 10.0, 0.0, 30.0)
+    rows = _flight(list(alpha), list(ref))
+    # Test
+    masks = phase_masks(rows)
+    # Assert
+    udt_t, mdt_t = t[masks["udt"]], t[masks["mdt"]]
+    assert udt_t[0] == pytest.approx(2.0) and udt_t[-1] < 10.1  # UDT: 2 .. 10.1 s
+    assert mdt_t[0] == pytest.approx(14.002, abs=0.003)  # > 20 deg from 12 s, + 2 s settle
+    assert masks["all"].all()
+
+
+def test_that_the_metrics_measure_what_they_say() -> None:
+    # Fixture: 5 mm off in y, rolled 1 deg, R_d pitched 2 deg, one rotor saturated
+    q_b = quat_from_euler_zyx(math.radians(1.0), 0.0, 0.0)
+    q_d = quat_from_euler_zyx(0.0, math.radians(2.0), 0.0)
+    rows = _flight([30.0] * 2000, [30.0] * 2000, pos_w_m=(0.0, 0.005, 0.0), q_wb=q_b,
+                   q_wd=q_d, sat_mask=1, eta_f=0.87)
+    # Test
+    m = flight_metrics(rows, min_spin_hz=16.0, max_spin_hz=102.0)
+    # Assert
+    assert m["all_pos_err_mean_mm"] == pytest.approx(5.0, rel=1e-5)
+    assert m["all_roll_err_mean_deg"] == pytest.approx(1.0, rel=1e-4)
+    assert m["all_pitch_err_mean_deg"] == pytest.approx(0.0, abs=1e-4)
+    assert m["all_rd_dev_mean_deg"] == pytest.approx(2.0, rel=1e-3)
+    assert m["all_inner_err_mean_deg"] == pytest.approx(math.sqrt(5.0), rel=1e-3)
+    assert m["all_spin_saturated_frac"] == 1.0
+    assert m["all_internal_force_loss_mean"] == pytest.approx(0.13, rel=1e-5)
+    assert m["all_spin_within_limits"] == 1.0
+    assert m["udt_ticks"] == 0 and math.isnan(m["udt_pos_err_mean_mm"])
+    assert m["mdt_ticks"] == 2000 - 1000  # the first 2 s of the phase are skipped
