@@ -173,6 +173,12 @@ class NatNetServer:
     def version(self) -> natnet.NatNetVersion:
         return self._version
 
+    @property
+    def unicast_clients(self) -> list[tuple[str, int]]:
+        """Addresses frames are sent to in unicast (CONNECT/KEEPALIVE seen recently)."""
+        with self._clients_lock:
+            return list(self._clients)
+
     def start(self, realtime: bool = True) -> None:
         """Bind the command port and serve it; with ``realtime``, also stream on the wall clock."""
         cfg = self.config

@@ -47,7 +47,8 @@ def _assert_pose(sample: PoseSample, pos: Vec3, q: Quat) -> None:
     assert quat_angle_rad(sample.q_wb, q) < ROT_TOL_RAD
 
 
-def _pair(version: str, mode: str, **emu: object) -> tuple[NatNetServer, NatNetConfig]:
+def _pair(version: str, mode: str, **emu: object
+          ) -> tuple[NatNetServer, NatNetEmulatorConfig]:
     data_port = free_udp_port()
     cfg = NatNetEmulatorConfig(version=version, mode=mode, command_port=0,  # type: ignore[arg-type]
                                data_port=data_port, **emu)  # type: ignore[arg-type]
@@ -245,3 +246,30 @@ def test_that_an_unknown_body_name_lists_the_defined_ones(lockstep: list[NatNetS
     lockstep.append(server)
     with pytest.raises(UnknownBodyError, match="fasthex"):
         NatNetClient(NatNetConfig(command_port=server.command_port, body="nope")).start()
+
+
+def test_that_a_silent_unicast_client_is_dropped_after_the_keepalive_timeout() -> None:
+    # Fixture: the emulator's wall clock is injected; the "client" is a raw UDP socket.
+    now = [100.0]
+    vehicle = BenchVehicle()
+    server = NatNetServer(vehicle, NatNetEmulatorConfig(command_port=0, client_timeout_s=10.0),
+                          wall_clock=lambda: now[0])
+    server.start(realtime=False)
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as raw:
+            raw.bind(("127.0.0.1", 0))
+            raw.settimeout(WAIT_S)
+            raw.sendto(natnet.encode_connect("empty"), ("127.0.0.1", server.command_port))
+            info = natnet.decode_message(raw.recv(4096), None)  # CONNECT is answered first
+            assert isinstance(info, natnet.ServerInfo) and info.version == (4, 1)
+            server.publish_due(0.0)
+            frame = natnet.decode_message(raw.recv(4096), info.version)
+            assert isinstance(frame, natnet.FrameOfData) and frame.frame_number == 1
+            assert server.unicast_clients == [raw.getsockname()]
+            # Test: 10.5 s without KEEPALIVE
+            now[0] += 10.5
+            server.publish_due(0.01)
+            # Assert
+            assert server.unicast_clients == []
+    finally:
+        server.close()

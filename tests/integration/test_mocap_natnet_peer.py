@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import threading
+from functools import partial
 from typing import Any
 
 import pytest
@@ -24,6 +25,10 @@ from sim_backend.vehicle import BenchVehicle, PoseReading
 peer = pytest.importorskip("natnet")
 
 WAIT_S = 10.0
+
+
+def _has(items: list[Any], n: int) -> bool:
+    return len(items) >= n
 
 
 class TiltedVehicle(BenchVehicle):
@@ -71,7 +76,7 @@ def test_that_the_pypi_natnet_client_parses_our_stream_with_the_same_poses(
                 truth[n] = vehicle.true_pose()
                 server.publish_due(vehicle.now_s())
                 with got_frames:
-                    assert got_frames.wait_for(lambda n=n: len(received) >= n, WAIT_S)
+                    assert got_frames.wait_for(partial(_has, received, n), WAIT_S)
         finally:
             client.shutdown()
     finally:

@@ -1,0 +1,63 @@
+"""MoCap URIs (natnet://, vrpn://) -> device configs, and clear errors for bad ones."""
+
+from __future__ import annotations
+
+import pytest
+
+from drivers.mocap.natnet_client import NatNetClient, NatNetConfig
+from drivers.mocap.pose import PoseSource
+from drivers.mocap.uri import MocapUriError, open_pose_source, parse_uri
+from drivers.mocap.vrpn_client import VrpnClient, VrpnConfig
+
+
+def test_that_a_full_natnet_uri_sets_every_option() -> None:
+    cfg = parse_uri("natnet://192.168.1.10:1600?local=192.168.1.20&mode=multicast"
+                    "&data_port=1611&group=239.255.42.98&body=fasthex&version=3.1&up=z"
+                    "&units=mm&delay_ms=0.5")
+    assert isinstance(cfg, NatNetConfig)
+    assert (cfg.server_ip, cfg.command_port, cfg.local_ip, cfg.mode) == \
+        ("192.168.1.10", 1600, "192.168.1.20", "multicast")
+    assert (cfg.data_port, cfg.multicast_group, cfg.body, cfg.version) == \
+        (1611, "239.255.42.98", "fasthex", "3.1")
+    assert (cfg.frames.up_axis, cfg.frames.units) == ("z", "mm")
+    assert cfg.network_delay_s == pytest.approx(0.0005)
+
+
+def test_that_a_bare_natnet_uri_takes_the_documented_defaults() -> None:
+    cfg = parse_uri("natnet://127.0.0.1")
+    assert cfg == NatNetConfig()
+
+
+def test_that_a_vrpn_uri_names_tracker_host_and_port_and_defaults_to_z_up() -> None:
+    cfg = parse_uri("vrpn://Tracker0@127.0.0.1:3884?sensor=2&latency_ms=8&stale_ms=30")
+    assert isinstance(cfg, VrpnConfig)
+    assert (cfg.tracker, cfg.host, cfg.port, cfg.sensor) == ("Tracker0", "127.0.0.1", 3884, 2)
+    assert cfg.latency_s == pytest.approx(0.008) and cfg.stale_after_s == pytest.approx(0.03)
+    assert cfg.frames.up_axis == "z"
+
+
+@pytest.mark.parametrize("uri,fragment", [
+    ("natnet://127.0.0.1?moda=unicast", "unknown option"),
+    ("natnet://127.0.0.1?mode=broadcast", "mode"),
+    ("natnet://127.0.0.1?version=2.9", "unsupported NatNet version"),
+    ("natnet://127.0.0.1?up=x", "up_axis"),
+    ("natnet://not-an-ip", "IPv4"),
+    ("vrpn://127.0.0.1", "TRACKER@HOST"),
+    ("vrpn://T@127.0.0.1?sensor=one", "one"),
+    ("qtm://127.0.0.1", "unknown scheme"),
+])
+def test_that_a_bad_uri_is_a_typed_error_naming_it(uri: str, fragment: str) -> None:
+    with pytest.raises(MocapUriError, match=fragment) as info:
+        parse_uri(uri)
+    assert uri in str(info.value)
+
+
+def test_that_open_pose_source_builds_unstarted_pose_sources_with_overrides() -> None:
+    nat = open_pose_source("natnet://127.0.0.1", body="pad")
+    vr = open_pose_source("vrpn://Tracker0@127.0.0.1")
+    assert isinstance(nat, NatNetClient) and nat.config.body == "pad"
+    assert isinstance(vr, VrpnClient)
+    assert isinstance(nat, PoseSource) and isinstance(vr, PoseSource)
+    assert nat.latest() is None and vr.latest() is None
+    with pytest.raises(MocapUriError):
+        open_pose_source("natnet://127.0.0.1", no_such_field=1)
