@@ -98,7 +98,8 @@ class FlightCtrlEmulatorConfig:
     n_motors: int = 6
     clock: Literal["realtime", "lockstep"] = "realtime"
     watchdog_s: float = 0.25
-    """BL-side timeout: no ``w`` for this long (simulated time) stops the motors."""
+    """BL-side timeout: no ``w`` for this long (simulated time) stops the motors. A stock
+    board applies the same time to its engine test (``t``), which must be renewed."""
     lockstep_grace_s: float = 2.0
     """Lockstep only: wall time without any ``w`` after which the emulator free-runs."""
     lockstep_default_period_s: float = 0.002
@@ -266,6 +267,8 @@ class EmulatedFlightCtrl:
         if self._pty.wait_readable(min(max(timeout, 0.0), 0.05)):
             data = self._pty.read(4096)
             if data:
+                if self._freerun:  # commands take effect at the present simulated time
+                    self._advance_to(self._sim0_ns + round((time.monotonic() - self._wall0) * _NS))
                 self._handle_input(data)
         now = time.monotonic()
         if not self._freerun and now - self._last_w_wall > self.config.lockstep_grace_s:
@@ -408,9 +411,12 @@ class EmulatedFlightCtrl:
                 m.state = _MotorState.SPINNING
                 changed = True
         if self._any_running() and t > self._last_w_ns + round(self.config.watchdog_s * _NS):
+            # tk3: the BL firmware stops and flags emergency. Stock: the engine-test set-points
+            # simply fall back to 0 when not renewed (PC_MotortestActive runs out).
+            emergency = self.config.firmware == "tk3"
             for m in self._motors:
                 if m.state != _MotorState.OFF:
-                    m.state, m.emergency = _MotorState.OFF, True
+                    m.state, m.emergency = _MotorState.OFF, emergency
             self._count("watchdog_trips")
             log.warning("emulated Flight-Ctrl: no spin-rate command for %.3f s: motors stopped",
                         self.config.watchdog_s)
