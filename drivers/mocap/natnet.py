@@ -287,6 +287,10 @@ def encode_keepalive() -> bytes:
     return _msg(MessageId.KEEPALIVE, b"")
 
 
+def encode_disconnect() -> bytes:
+    return _msg(MessageId.DISCONNECT, b"")
+
+
 def encode_request_modeldef() -> bytes:
     return _msg(MessageId.REQUEST_MODELDEF, b"")
 

@@ -164,7 +164,7 @@ class NatNetClient:
             if s is not None:
                 with contextlib.suppress(OSError):
                     if s is self._cmd and self._server_info is not None:
-                        s.sendto(natnet._msg(natnet.MessageId.DISCONNECT, b""), self._server)
+                        s.sendto(natnet.encode_disconnect(), self._server)
                     s.close()
         self._cmd = self._data = None
 

@@ -30,11 +30,32 @@ NAME = "mocap"
 HELP = "list MoCap rigid bodies or watch one live (NatNet or VRPN URI)"
 
 
+URI_HELP = """MoCap URIs:
+  natnet://SERVER[:PORT]?local=IP&mode=unicast|multicast&data_port=N&group=IP&body=NAME
+           &version=X.Y&up=y|z&units=m|mm&delay_ms=F
+      OptiTrack Motive; PORT = command port (1510); local = this PC's address on the MoCap
+      network; unicast (default) or multicast (group 239.255.42.99, data port 1511);
+      version = bitstream to request (unicast only); up = streaming up axis (default y).
+  vrpn://TRACKER@HOST[:PORT]?sensor=N&up=y|z&units=m|mm&latency_ms=F&stale_ms=F
+      a VRPN tracker (Vicon Tracker, Motive, QTM), port 3883, up axis z by default.
+examples:
+  fasthex mocap list  "natnet://127.0.0.1?local=127.0.0.1&mode=unicast"
+  fasthex mocap watch "natnet://192.168.1.10?local=192.168.1.20&mode=multicast" --body fasthex
+  fasthex mocap watch vrpn://Tracker0@127.0.0.1:3883
+"""
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = URI_HELP
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
     sub = parser.add_subparsers(dest="mocap_action", metavar="ACTION", required=True)
-    p_list = sub.add_parser("list", help="list the rigid bodies / trackers of a MoCap server")
+    p_list = sub.add_parser("list", help="list the rigid bodies / trackers of a MoCap server",
+                            epilog=URI_HELP,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     p_list.add_argument("uri", metavar="URI", help="natnet://SERVER?... or vrpn://TRACKER@HOST")
-    p_watch = sub.add_parser("watch", help="show the live pose, rate and latency of one body")
+    p_watch = sub.add_parser("watch", help="show the live pose, rate and latency of one body",
+                             epilog=URI_HELP,
+                             formatter_class=argparse.RawDescriptionHelpFormatter)
     p_watch.add_argument("uri", metavar="URI", help="natnet://SERVER?... or vrpn://TRACKER@HOST")
     p_watch.add_argument("--body", default="", help="rigid-body name (NatNet); default: "
                          "the URI's body option, else the first defined")

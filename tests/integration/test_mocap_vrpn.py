@@ -1,5 +1,8 @@
 """Our VRPN client, and the compiled VRPN 07.38 client inside PyPI ``motioncapture``, against
-the emulated VRPN tracker server over real TCP/UDP sockets on loopback."""
+the emulated VRPN tracker server over real TCP/UDP sockets on loopback.
+
+Our client connects over TCP directly; the mainline VRPN client in ``motioncapture`` lobs a UDP
+connection request and the emulator connects back over TCP, so both paths are exercised."""
 
 from __future__ import annotations
 
