@@ -40,10 +40,13 @@ def process_model(x: FloatArray, dt: float, *, gyro_rad_s: FloatArray, accel_m_s
     ``left_ref`` = L(q_ref) and ``left_next_ref_inv`` = L(q_ref'^-1) (4x4, see
     :func:`~estimator.quaternion.left_matrix`) are shared by every sigma point.
     """
-    q = quat_exp(x[..., 6:9]) @ left_ref.T                   # q_ref (x) Exp(dtheta)
+    rotvecs = np.empty((*x.shape[:-1], 2, 3))          # one Exp call for both rotations
+    rotvecs[..., 0, :] = x[..., 6:9]
+    rotvecs[..., 1, :] = (gyro_rad_s - x[..., 9:12]) * dt
+    exps = quat_exp(rotvecs)
+    q = exps[..., 0, :] @ left_ref.T                     # q_ref (x) Exp(dtheta)
     a_w = (quat_to_rot(q) @ (accel_m_s2 - x[..., 12:15])[..., None])[..., 0] + gravity_w
-    step = quat_exp((gyro_rad_s - x[..., 9:12]) * dt)
-    q_next = (left_matrix(q) @ step[..., None])[..., 0]
+    q_next = (left_matrix(q) @ exps[..., 1, :, None])[..., 0]
     out = np.empty_like(x)
     vel = x[..., 3:6]
     out[..., 0:3] = x[..., 0:3] + vel * dt + (0.5 * dt * dt) * a_w

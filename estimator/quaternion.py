@@ -9,6 +9,8 @@ or all sigma points of the UKF at once; the products are written as small matrix
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import numpy.typing as npt
 
@@ -80,11 +82,12 @@ def quat_normalize(q: FloatArray) -> FloatArray:
 
 def quat_exp(rotvec: FloatArray) -> FloatArray:
     """Exp: rotation vector (..., 3) -> unit quaternion (..., 4); exact at zero angle."""
-    angle = np.sqrt(np.sum(rotvec * rotvec, axis=-1))
+    angle = np.sqrt(np.einsum("...i,...i->...", rotvec, rotvec))
+    half = 0.5 * angle
     out = np.empty((*rotvec.shape[:-1], 4))
-    out[..., 0] = np.cos(0.5 * angle)
-    # sin(angle/2)/angle == 0.5 * sinc(angle / (2 pi)) with numpy's normalised sinc.
-    out[..., 1:] = rotvec * (0.5 * np.sinc(angle * (0.5 / np.pi)))[..., None]
+    out[..., 0] = np.cos(half)
+    # sin(angle/2)/angle, and 0 * anything at angle 0 (where the vector part is 0 anyway)
+    out[..., 1:] = rotvec * (np.sin(half) / np.where(angle > 0.0, angle, 1.0))[..., None]
     return out
 
 
@@ -92,7 +95,7 @@ def quat_log(q: FloatArray) -> FloatArray:
     """Log: unit quaternion (..., 4) -> rotation vector (..., 3) of angle <= pi."""
     w = q[..., 0]
     v = q[..., 1:]
-    s = np.sqrt(np.sum(v * v, axis=-1))
+    s = np.sqrt(np.einsum("...i,...i->...", v, v))
     factor = 2.0 * np.arctan2(s, np.abs(w)) / np.where(s > 0.0, s, 1.0) * np.copysign(1.0, w)
     return v * factor[..., None]
 
@@ -144,3 +147,45 @@ def angle_between(q_a: FloatArray, q_b: FloatArray) -> FloatArray:
     """Geodesic angle (rad) between two rotations, broadcast over leading axes."""
     rel = quat_mul(quat_conj(q_a), q_b)
     return np.sqrt(np.sum(quat_log(rel) ** 2, axis=-1))
+
+
+# -- single quaternions in plain floats: a few numpy calls on 4 numbers cost more than the math --
+def mul_exp_single(q: FloatArray, rotvec: FloatArray) -> FloatArray:
+    """q (x) Exp(rotvec), normalised, for one quaternion."""
+    w, x, y, z = q.tolist()
+    a, b, c = rotvec.tolist()
+    angle = math.sqrt(a * a + b * b + c * c)
+    cw = math.cos(0.5 * angle)
+    k = math.sin(0.5 * angle) / angle if angle > 1e-12 else 0.5
+    a, b, c = a * k, b * k, c * k
+    rw = w * cw - x * a - y * b - z * c
+    rx = w * a + x * cw + y * c - z * b
+    ry = w * b - x * c + y * cw + z * a
+    rz = w * c + x * b - y * a + z * cw
+    n = math.sqrt(rw * rw + rx * rx + ry * ry + rz * rz)
+    return np.array([rw / n, rx / n, ry / n, rz / n])
+
+
+def log_relative_single(q_a: FloatArray, q_b: FloatArray) -> FloatArray:
+    """Log(q_a^-1 (x) q_b) for one pair: the rotation vector from a to b in a's frame."""
+    w, x, y, z = q_a.tolist()
+    bw, bx, by, bz = q_b.tolist()
+    rw = w * bw + x * bx + y * by + z * bz
+    rx = w * bx - x * bw - y * bz + z * by
+    ry = w * by + x * bz - y * bw - z * bx
+    rz = w * bz - x * by + y * bx - z * bw
+    s = math.sqrt(rx * rx + ry * ry + rz * rz)
+    if s == 0.0:
+        return np.zeros(3)
+    f = 2.0 * math.atan2(s, abs(rw)) / s * (1.0 if rw >= 0.0 else -1.0)
+    return np.array([rx * f, ry * f, rz * f])
+
+
+def rotate_single(q: FloatArray, v: FloatArray) -> FloatArray:
+    """R(q) v for one unit quaternion and one vector."""
+    w, x, y, z = q.tolist()
+    a, b, c = v.tolist()
+    # t = 2 q_v x v;  v' = v + w t + q_v x t
+    tx, ty, tz = 2.0 * (y * c - z * b), 2.0 * (z * a - x * c), 2.0 * (x * b - y * a)
+    return np.array([a + w * tx + (y * tz - z * ty), b + w * ty + (z * tx - x * tz),
+                     c + w * tz + (x * ty - y * tx)])

@@ -152,6 +152,7 @@ class MocapModel:
     latency_max_s: float = 0.0
     dropouts_s: tuple[tuple[float, float], ...] = ()           # (start, end) without frames
     outliers: tuple[tuple[float, tuple[float, float, float]], ...] = ()  # (t, position jump)
+    capture_phase_s: float | None = None   # first capture after t0; None: half a period
 
 
 # The paper's sensor class (ADXRS620 gyro, MXR9500M-class accelerometer, sub-mm MoCap) with
@@ -226,7 +227,8 @@ def make_scenario(traj: Trajectory, duration_s: float, imu: ImuModel, mocap: Moc
 def _mocap_frames(traj: Trajectory, t0_s: float, duration_s: float, mocap: MocapModel,
                   rng: np.random.Generator, gravity_m_s2: float) -> list[MocapFrame]:
     n = math.floor(duration_s * mocap.rate_hz)
-    t_cap = t0_s + (np.arange(n, dtype=np.float64) + 0.5) / mocap.rate_hz
+    phase = 0.5 / mocap.rate_hz if mocap.capture_phase_s is None else mocap.capture_phase_s
+    t_cap = t0_s + phase + np.arange(n, dtype=np.float64) / mocap.rate_hz
     truth = sample_truth(traj, t_cap, gravity_m_s2)
     pos = truth.pos_w_m + rng.normal(0.0, mocap.pos_sigma_m, (n, 3))
     noise = quat_exp(rng.normal(0.0, math.radians(mocap.att_sigma_deg), (n, 3)))

@@ -44,12 +44,12 @@ from .config import EstimatorConfig
 from .kernels import FastKernel, FilterpyKernel, Kernel
 from .quaternion import (
     left_matrix,
+    log_relative_single,
+    mul_exp_single,
     quat_conj,
-    quat_exp,
-    quat_log,
-    quat_mul,
     quat_normalize,
     quat_to_rot,
+    rotate_single,
 )
 from .types import (
     ACCEL_BIAS,
@@ -329,7 +329,7 @@ class Ukf:
     def _propagate(self, x: FloatArray, P: FloatArray, q_ref: FloatArray, dt: float,
                    gyro: FloatArray, accel: FloatArray
                    ) -> tuple[FloatArray, FloatArray, FloatArray]:
-        q_next = quat_mul(q_ref, quat_exp((gyro - x[GYRO_BIAS]) * dt))
+        q_next = mul_exp_single(q_ref, (gyro - x[GYRO_BIAS]) * dt)
         args = (self._process_noise(dt), dt, gyro, accel, left_matrix(q_ref),
                 left_matrix(quat_conj(q_next)))
         try:
@@ -342,7 +342,7 @@ class Ukf:
     def _fuse(self, x: FloatArray, P: FloatArray, q_ref: FloatArray, pos: FloatArray,
               q_m: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray] | None:
         """Gated update; ``None`` when the gate rejects (inputs are never modified)."""
-        z = np.concatenate((pos, quat_log(quat_mul(quat_conj(q_ref), q_m))))
+        z = np.concatenate((pos, log_relative_single(q_ref, q_m)))
         try:
             x1, P1, y, S = self._kernel.update(x, P, z, self._R)
         except np.linalg.LinAlgError:
@@ -356,9 +356,9 @@ class Ukf:
 
     def _fold_attitude(self, x: FloatArray, q_ref: FloatArray) -> FloatArray:
         """Move the attitude error into the nominal quaternion and zero it (in place on x)."""
-        q = quat_mul(q_ref, quat_exp(x[ATT]))
+        q = mul_exp_single(q_ref, x[ATT])
         x[ATT] = 0.0
-        return q / math.sqrt(float(q @ q))
+        return q
 
     def _condition(self, P: FloatArray) -> FloatArray:
         """Symmetrise, floor the variances, cap the position sigma (congruence keeps P SPD)."""
@@ -511,9 +511,8 @@ class Ukf:
         if force_cmd_b_n is None:
             return
         m = cfg.mass_kg
-        rot = quat_to_rot(self._q_ref)
         f_cmd = np.asarray(force_cmd_b_n, dtype=np.float64)
-        z = rot @ (m * (accel - self._x[ACCEL_BIAS]) - f_cmd)
+        z = rotate_single(self._q_ref, m * (accel - self._x[ACCEL_BIAS]) - f_cmd)
         # per-sample accelerometer noise variance (density^2 / dt) plus the bias uncertainty
         r = m * m * (cfg.accel_noise_m_s2_sqrt_hz ** 2 / dt
                      + float(np.mean(np.diag(self._P)[ACCEL_BIAS])))
