@@ -24,7 +24,7 @@ import numpy as np
 
 from controller.geometric import GeometricController
 from controller.missions import Mission
-from controller.model import VehicleModel
+from controller.model import LateralBound, VehicleModel
 from controller.params import VehicleParams
 from controller.reference import (
     Quat,
@@ -117,8 +117,11 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
     Returns the metadata a record header should carry, with timing.
     """
     model = VehicleModel(params)
-    controller = GeometricController(params, model=model)
-    planner = TiltPlanner(params, model=model)
+    bound = LateralBound.for_model(model)
+    controller = GeometricController(params, model=model, bound=bound)
+    # the planner's capability: the same fit without the controller's conservative scale
+    planner = TiltPlanner(params, capability=LateralBound(bound.coeffs_n, 1.0,
+                                                          bound.dead_zone_deg))
     sim = FastHexSimulator(params, preset, seed=seed, start_pos_w_m=mission.start_pos_w_m,
                            start_q_wb=mission.start_q_wb)
     rng = np.random.default_rng([seed, 7])
