@@ -19,6 +19,7 @@ The MoCap measurement is ``z = [p_m, Log(q_ref^-1 (x) q_m)]`` with ``h(x) = [p, 
 
 from __future__ import annotations
 
+import functools
 from typing import Protocol
 
 import numpy as np
@@ -47,13 +48,23 @@ def process_model(x: FloatArray, dt: float, *, gyro_rad_s: FloatArray, accel_m_s
     q = exps[..., 0, :] @ left_ref.T                     # q_ref (x) Exp(dtheta)
     a_w = (quat_to_rot(q) @ (accel_m_s2 - x[..., 12:15])[..., None])[..., 0] + gravity_w
     q_next = (left_matrix(q) @ exps[..., 1, :, None])[..., 0]
-    out = np.empty_like(x)
-    vel = x[..., 3:6]
-    out[..., 0:3] = x[..., 0:3] + vel * dt + (0.5 * dt * dt) * a_w
-    out[..., 3:6] = vel + a_w * dt
+    F, G = _linear_step(dt)
+    out = x @ F.T + a_w @ G.T          # p + v dt + a dt^2/2, v + a dt, biases unchanged
     out[..., 6:9] = quat_log(q_next @ left_next_ref_inv.T)
-    out[..., 9:] = x[..., 9:]
     return out
+
+
+@functools.lru_cache(maxsize=8)
+def _linear_step(dt: float) -> tuple[FloatArray, FloatArray]:
+    """F (15x15, zero on the attitude rows) and G (15x3) of the linear part of the step."""
+    i3 = np.eye(3)
+    F = np.eye(15)
+    F[6:9, 6:9] = 0.0
+    F[0:3, 3:6] = dt * i3
+    G = np.zeros((15, 3))
+    G[0:3] = 0.5 * dt * dt * i3
+    G[3:6] = dt * i3
+    return F, G
 
 
 def measurement_model(x: FloatArray) -> FloatArray:
