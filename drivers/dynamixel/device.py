@@ -108,6 +108,9 @@ class TiltServoConfig:
     reconnect_period_s: float = spec(0.2, gt=0.0, le=10.0, doc="retry period when unplugged")
     sdk_latency_timer_ms: float = spec(16.0, ge=1.0, le=1000.0,
                                        doc="dynamixel_sdk LATENCY_TIMER: timeout = 2x this + 2 ms")
+    sdk_read_block_ms: float = spec(1.0, ge=0.0, le=10.0,
+                                    doc="serial read timeout under the SDK's reply loop: its "
+                                        "wait blocks in select() instead of spinning (0 = spin)")
     min_firmware: int = spec(0, ge=0, le=255, doc="refuse older firmware")
     assume_homed: bool = spec(True, doc="trust zero_offset_steps at start (else home() first)")
 
@@ -321,8 +324,9 @@ def _sdk() -> Any:
 class _Link:
     """The SDK wrapped: result codes become exceptions, the port is dropped after one."""
 
-    def __init__(self, uri: str, latency_timer_ms: float) -> None:
+    def __init__(self, uri: str, latency_timer_ms: float, read_block_ms: float = 1.0) -> None:
         self.uri = uri
+        self.read_block_s = read_block_ms / 1000.0
         self.target = parse_servo_uri(uri)
         self.sdk = _sdk()
         self.sdk.port_handler.LATENCY_TIMER = latency_timer_ms
@@ -343,6 +347,10 @@ class _Link:
             with contextlib.suppress(Exception):
                 port.closePort()
             raise ServoCommError(self.uri, "cannot open the port")
+        # The SDK opens with timeout=0 and polls read() until its deadline: one core at 100 %.
+        # A short read timeout makes each poll block in select() until bytes arrive; the SDK's
+        # own deadline logic is unchanged (it just checks it at most every read_block_s).
+        port.ser.timeout = self.read_block_s
         self.port = port
 
     def drop(self) -> None:
@@ -420,10 +428,11 @@ def _u16(data: list[int], i: int) -> int:
     return data[i] | (data[i + 1] << 8)
 
 
-def probe_servo(uri: str, latency_timer_ms: float = 16.0) -> ServoIdentity:
+def probe_servo(uri: str, latency_timer_ms: float = 16.0,
+                read_block_ms: float = 1.0) -> ServoIdentity:
     """Identify the servo at ``uri`` from the calling process (preflight / CLI; it busy-waits,
     so not from the control loop). Raises :class:`ServoCommError` if nothing answers."""
-    link = _Link(uri, latency_timer_ms)
+    link = _Link(uri, latency_timer_ms, read_block_ms)
     link.open()
     try:
         return _identify(link)
@@ -452,7 +461,7 @@ class _Worker:
         self.mailbox = mailbox
         self.conn = conn
         self.stop = stop
-        self.link = _Link(cfg.uri, cfg.sdk_latency_timer_ms)
+        self.link = _Link(cfg.uri, cfg.sdk_latency_timer_ms, cfg.sdk_read_block_ms)
         self.zero = cfg.zero_offset_steps
         self.homed = cfg.assume_homed
         self.values = [math.nan] * int(_S.N)
@@ -803,7 +812,8 @@ class TiltServo:
     def probe(self, timeout_s: float = 2.0) -> ServoIdentity:
         """Identify the servo (model, firmware, mode): through the servo process if started."""
         if self._runner is None:
-            return probe_servo(self.config.uri, self.config.sdk_latency_timer_ms)
+            return probe_servo(self.config.uri, self.config.sdk_latency_timer_ms,
+                               self.config.sdk_read_block_ms)
         identity: ServoIdentity = self._request(timeout_s, "identify")
         return identity
 

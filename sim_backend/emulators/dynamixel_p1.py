@@ -625,13 +625,17 @@ class EmulatedMX28:
         return None
 
 
-def serve_bench_servo(link_path: str, stop: Any, ready: Any, time_scale: float = 1.0) -> None:
+def serve_bench_servo(link_path: str, stop: Any, ready: Any, silent: Any = None,
+                      time_scale: float = 1.0) -> None:
     """Process entry point: one emulated MX-28T geared to a :class:`BenchVehicle`, served until
-    ``stop`` (a multiprocessing Event) is set. ``ready`` is set once ``link_path`` exists."""
+    ``stop`` (a multiprocessing Event) is set. ``ready`` is set once ``link_path`` exists; while
+    the optional ``silent`` Event is set the servo does not answer."""
     from sim_backend.vehicle import BenchVehicle
 
     vehicle = BenchVehicle(max_tilt_rate_rad_s=math.radians(100.0))
     servo = EmulatedMX28(vehicle, link_path=link_path, drive_clock=True, time_scale=time_scale)
     with servo:
         ready.set()
-        stop.wait()
+        while not stop.wait(0.02):
+            quiet = silent is not None and silent.is_set()
+            servo.set_fault(Fault.SILENT if quiet else Fault.NONE)
