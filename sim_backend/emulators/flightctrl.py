@@ -77,6 +77,8 @@ class WireFaults:
     """Probability that a byte is replaced by a different random byte."""
     drop_prob: float = 0.0
     """Probability that a byte is lost."""
+    disconnect_after_s: float | None = None
+    """Pull the cable (close the pty) once this much simulated time has passed since start."""
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -199,6 +201,7 @@ class EmulatedFlightCtrl:
         self._last_w_wall = time.monotonic()
         self._freerun = self.config.clock == "realtime"
         self._sim_ns = 0
+        self._start_ns = 0
         self._wall0 = 0.0
         self._sim0_ns = 0
         self._tx_queue: deque[tuple[float, bytes]] = deque()
@@ -216,6 +219,7 @@ class EmulatedFlightCtrl:
             raise RuntimeError("emulator already started")
         with self._lock:
             self._sim_ns = round(self._vehicle.now_s() * _NS)
+        self._start_ns = self._sim_ns
         self._anchor()
         self._last_w_ns = self._sim_ns
         self._apply_rotors()
@@ -278,6 +282,11 @@ class EmulatedFlightCtrl:
         if self._freerun:
             self._advance_to(self._sim0_ns + round((time.monotonic() - self._wall0) * _NS))
         self._flush_tx(time.monotonic())
+        cut = self.config.faults.disconnect_after_s
+        if cut is not None and self._sim_ns - self._start_ns >= round(cut * _NS):
+            log.warning("emulated Flight-Ctrl: cable pulled (disconnect_after_s = %s)", cut)
+            self._stop.set()
+            self._pty.close()
 
     def _anchor(self) -> None:
         self._wall0 = time.monotonic()
@@ -642,3 +651,33 @@ class EmulatedFlightCtrl:
     def _count(self, name: str, n: int = 1) -> None:
         with self._stats_lock:
             setattr(self._stats, name, getattr(self._stats, name) + n)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run one emulated Flight-Ctrl on a bench vehicle and print where to connect."""
+    import argparse
+
+    from sim_backend.vehicle import BenchVehicle
+
+    parser = argparse.ArgumentParser(description=main.__doc__)
+    parser.add_argument("--link", default=None, help="stable symlink to the pty slave")
+    parser.add_argument("--firmware", choices=("tk3", "stock"), default="tk3")
+    parser.add_argument("--clock", choices=("realtime", "lockstep"), default="realtime")
+    parser.add_argument("--firmware-id", default="mkfl1.8")
+    args = parser.parse_args(argv)
+    config = FlightCtrlEmulatorConfig(firmware=args.firmware, clock=args.clock,
+                                      firmware_id=args.firmware_id)
+    emu = EmulatedFlightCtrl(BenchVehicle(), link_path=args.link, config=config).start()
+    print(f"emulated Flight-Ctrl ({args.firmware}, {args.clock}): pty://{emu.path}", flush=True)
+    try:
+        while True:
+            time.sleep(3600)  # the emulator runs on its own thread; wait for Ctrl-C
+    except KeyboardInterrupt:
+        pass
+    finally:
+        emu.stop()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

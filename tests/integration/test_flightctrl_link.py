@@ -62,13 +62,17 @@ def _lockstep(**kw: object) -> FlightCtrlEmulatorConfig:
     return FlightCtrlEmulatorConfig(clock="lockstep", record_truth=True, **kw)  # type: ignore[arg-type]
 
 
-def _fly(fc: FlightCtrl, ticks: int, speeds_hz: list[float]) -> list[ImuSample]:
-    """The 500 Hz loop's I/O: per IMU sample, one w frame (re-sent if a sample is lost)."""
+def _fly(fc: FlightCtrl, ticks: int, speeds_hz: list[float], resend_s: float | None = None
+         ) -> list[ImuSample]:
+    """The 500 Hz loop's I/O: per IMU sample, one w frame.
+
+    With ``resend_s``, a w is also sent when no sample came for that long (a sample lost on a
+    damaged wire would otherwise stall a lockstep exchange)."""
     samples: list[ImuSample] = []
     deadline = time.monotonic() + TIMEOUT_S
     while len(samples) < ticks:
         assert time.monotonic() < deadline, f"only {len(samples)} of {ticks} samples"
-        sample = fc.wait_next(0.02)
+        sample = fc.wait_next(resend_s if resend_s is not None else TIMEOUT_S)
         if sample is not None:
             samples.append(sample)
         fc.send_rotor_speeds_hz(speeds_hz)
@@ -182,7 +186,8 @@ def test_that_the_watchdog_stops_the_motors_and_raises_the_emergency_flag(
         clock: str, make_link: Callable[..., tuple[EmulatedFlightCtrl, FlightCtrl,
                                                     BenchVehicle]]) -> None:
     # Fixture: motors spinning at 70 Hz
-    cfg = FlightCtrlEmulatorConfig(clock=clock, watchdog_s=0.1,  # type: ignore[arg-type]
+    # watchdog longer than any scheduling hiccup of a loaded machine while we do send w
+    cfg = FlightCtrlEmulatorConfig(clock=clock, watchdog_s=0.5,  # type: ignore[arg-type]
                                    lockstep_grace_s=0.2)
     emu, fc, vehicle = make_link(cfg, FlightCtrlConfig(motor_rate_hz=100.0))
     fc.start_motors(timeout_s=TIMEOUT_S)
@@ -217,6 +222,15 @@ def test_that_a_disconnect_raises_device_lost_naming_the_device(make_link: Calla
         fc.send_rotor_speeds_hz([50.0] * 6)
 
 
+def test_that_a_timed_disconnect_is_seen_as_device_lost(make_link: Callable[
+        ..., tuple[EmulatedFlightCtrl, FlightCtrl, BenchVehicle]]) -> None:
+    cfg = replace(_lockstep(), faults=WireFaults(disconnect_after_s=0.1))
+    emu, fc, _ = make_link(cfg)
+    with pytest.raises(DeviceLostError):
+        _fly(fc, 1000, [0.0] * 6)
+    assert emu.sim_time_s() == pytest.approx(0.1)
+
+
 def test_that_output_paced_at_500_kbaud_carries_the_1_khz_stream(make_link: Callable[
         ..., tuple[EmulatedFlightCtrl, FlightCtrl, BenchVehicle]]) -> None:
     emu, fc, _ = make_link(replace(_lockstep(), faults=WireFaults(baud=500_000)),
@@ -247,7 +261,7 @@ def test_that_one_percent_corrupted_bytes_are_dropped_and_counted(make_link: Cal
     emu, fc, _ = make_link(replace(_lockstep(), faults=WireFaults(corrupt_prob=0.01, seed=7)),
                            FlightCtrlConfig(motor_rate_hz=50.0))
     # Test
-    samples = _fly(fc, 1500, [0.0] * 6)
+    samples = _fly(fc, 1500, [0.0] * 6, resend_s=0.02)
     # Assert
     truth = _truth(emu)
     stats = fc.link_stats()
