@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import termios
 import threading
 import time
 from collections import deque
@@ -59,6 +60,7 @@ from drivers.dynamixel.control_table import (
     Mode,
     Reg,
     Register,
+    baud_from_register,
     encode_signed_magnitude_11,
     mode_from_limits,
     signed_magnitude_11,
@@ -70,6 +72,13 @@ STEP_PERIOD_S = 0.002
 SPEED_WINDOW_S = 0.05
 """Present Speed is the mean speed over this much vehicle time."""
 """How often the motion and thermal models are stepped while no bytes arrive (wall time)."""
+
+
+_TERMIOS_BAUDS = {getattr(termios, f"B{bps}"): bps for bps in (
+    9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600, 1000000,
+    1152000, 2000000, 2500000, 3000000, 3500000, 4000000) if hasattr(termios, f"B{bps}")}
+BAUD_TOLERANCE = 0.03
+"""A UART still decodes bytes whose bit rate is within ~3 % of its own."""
 
 
 class Fault(Enum):
@@ -98,6 +107,8 @@ class EmulatedMX28:
     ``zero_offset_steps`` is the Present Position (multi-turn, divider 1, no offset) at tilt 0:
     where the mechanism was assembled. ``drive_clock=True`` makes this emulator advance the
     vehicle by the elapsed wall time (times ``time_scale``) when nothing else does (a bench).
+    ``model_baud``: bytes sent at a bit rate (the client's termios speed on the pty) more than
+    3 % off the Baud Rate register are dropped, as a UART would: a wrong baud means silence.
     """
 
     def __init__(
@@ -118,6 +129,7 @@ class EmulatedMX28:
         full_load_temp_rise_c: float = 80.0,
         drive_clock: bool = False,
         time_scale: float = 1.0,
+        model_baud: bool = True,
     ) -> None:
         if not 0 <= dxl_id <= MAX_ID:
             raise ValueError(f"Dynamixel ID {dxl_id} outside 0..{MAX_ID}")
@@ -164,6 +176,8 @@ class EmulatedMX28:
         self.goal_log: deque[GoalRecord] = deque(maxlen=100_000)
         self.tilt_log: deque[tuple[float, float]] = deque(maxlen=200_000)
 
+        self._model_baud = model_baud
+        self.wrong_baud_bytes = 0
         self._parser = p1.Parser()
         self._replies: list[tuple[float, bytes]] = []  # (wall due time, bytes)
         self._endpoint: PtyEndpoint | None = PtyEndpoint(link_path)
@@ -293,10 +307,27 @@ class EmulatedMX28:
                 data = b""  # endpoint closed under us (unplug)
             with self._mutex:
                 self.step()
+                if data and not self._baud_matches(endpoint):
+                    self.wrong_baud_bytes += len(data)
+                    data = b""
                 if data:
                     for packet in self._parser.feed(data):
                         self._schedule(self.handle(packet))
                 self._send_due()
+
+    def _baud_matches(self, endpoint: PtyEndpoint) -> bool:
+        if not self._model_baud:
+            return True
+        try:
+            # The slave's termios is shared by every fd on it: the client's settings show here.
+            speed = termios.tcgetattr(endpoint.master_fd)[5]
+        except termios.error:
+            return True
+        client = _TERMIOS_BAUDS.get(speed)
+        if client is None:
+            return True  # a rate we cannot name: do not judge
+        servo = baud_from_register(self._read_reg(Reg.BAUD_RATE))
+        return abs(client - servo) <= BAUD_TOLERANCE * servo
 
     def _schedule(self, reply: bytes | None) -> None:
         if reply is None or self.fault is Fault.SILENT:

@@ -102,3 +102,12 @@ def test_that_a_measurement_older_than_100_ms_is_stale_whatever_the_worker_said(
     assert stale.health is ServoHealth.STALE
     assert stale.age_s == pytest.approx(0.15)
     assert_kept_last_tilt(stale)
+
+
+def test_that_a_wrong_baud_in_the_uri_is_no_reply_not_a_crash(tmp_path: Path) -> None:
+    vehicle = BenchVehicle()
+    with EmulatedMX28(vehicle, lock=threading.Lock(), link_path=tmp_path / "servo",
+                      drive_clock=True) as emu, \
+            TiltServo(TiltServoConfig(uri=f"serial://{emu.path}?baud=57600&id=1")) as servo:
+        state = servo.wait_for(lambda s: s.health is ServoHealth.NO_REPLY, WAIT_S)
+        assert math.isnan(state.tilt_rad) and state.timeouts >= 1

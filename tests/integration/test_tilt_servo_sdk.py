@@ -65,3 +65,13 @@ def test_that_with_status_return_level_1_a_write_times_out_although_applied(
     assert ph.write1ByteTxRx(port, 1, Reg.STATUS_RETURN_LEVEL, 1) == (sdk.COMM_SUCCESS, 0)
     assert ph.write1ByteTxRx(port, 1, Reg.LED, 1)[0] == sdk.COMM_RX_TIMEOUT
     assert emulator.register(Reg.LED) == 1
+
+
+def test_that_a_client_at_the_wrong_baud_gets_silence_until_it_switches(
+        emulator: EmulatedMX28, port: sdk.PortHandler) -> None:
+    ph = sdk.PacketHandler(1.0)
+    assert port.setBaudRate(57600)  # the servo is at 1 Mbps (Baud Rate register 1)
+    assert ph.ping(port, 1)[1] == sdk.COMM_RX_TIMEOUT
+    assert emulator.wrong_baud_bytes > 0
+    assert port.setBaudRate(1_000_000)
+    assert ph.ping(port, 1)[:2] == (29, sdk.COMM_SUCCESS)

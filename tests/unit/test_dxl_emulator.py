@@ -6,6 +6,8 @@ import math
 from collections.abc import Iterator
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from drivers.dynamixel import protocol1 as p1
 from drivers.dynamixel.control_table import ErrorBit, Instruction, Mode, Reg
@@ -225,3 +227,16 @@ def test_that_a_power_cycle_loses_the_turn_count_and_the_torque(
     assert emu.mode() is Mode.MULTI_TURN  # EEPROM kept
     assert emu.register(Reg.PRESENT_POSITION) == 7964 - 4096
     assert bench.tilt_rad() / DEG == pytest.approx(35.0, abs=0.01)  # the worm holds
+
+
+@settings(max_examples=300, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.integers(0, 0xFE), st.integers(0, 0xFF), st.binary(max_size=40), st.booleans())
+def test_that_any_instruction_is_answered_with_a_well_formed_status_or_nothing(
+        emu: EmulatedMX28, dxl_id: int, code: int, params: bytes, ok: bool) -> None:
+    id_before = emu.register(Reg.ID)
+    reply = emu.handle(p1.Packet(dxl_id, code, params, ok))
+    if reply is not None:
+        (status,) = p1.Parser().feed(reply)
+        assert status.checksum_ok and status.dxl_id in (id_before, emu.register(Reg.ID))
+        assert status.code <= 0x7F
+    assert emu.register(Reg.MODEL_NUMBER) == 29  # read-only stays read-only
