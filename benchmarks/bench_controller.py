@@ -67,7 +67,7 @@ class NumpyBaseline:
             k = c / np.linalg.norm(c)
             theta_max = math.atan2(np.linalg.norm(c), b3r @ f_r)
             theta = theta_max / 2
-            thr = math.sqrt(max(0.0, f_r @ f_r - rxy * rxy))
+            thr = math.sqrt(max(0.0, float(f_r @ f_r) - rxy * rxy))
             kk = _skew(k)
             for i in range(1, self.n_it + 1):
                 rot = np.eye(3) + math.sin(theta) * kk + (1 - math.cos(theta)) * kk @ kk
