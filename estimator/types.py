@@ -43,6 +43,8 @@ class EstimatorHealth:
     resets: int                   # position/attitude re-seeded from MoCap after repeated rejects
     covariance_repairs: int       # Cholesky failures repaired by inflating the diagonal
     imu_out_of_order: int         # samples with a non-increasing timestamp: dropped
+    imu_invalid: int              # samples with a non-finite value: dropped
+    poses_invalid: int            # non-finite position or degenerate quaternion: dropped
     last_nis: float               # normalised innovation squared of the last pose (nan: none)
 
     @property

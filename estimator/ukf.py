@@ -76,6 +76,7 @@ class PoseVerdict(enum.Enum):
     REJECTED = "rejected"            # failed the Mahalanobis gate
     RESET = "reset"                  # rejected once too often: position/attitude re-seeded
     TOO_OLD = "too_old"              # captured before the history window
+    INVALID = "invalid"              # non-finite values or a degenerate quaternion
     INITIALIZING = "initializing"    # collected for the rest-period initialisation
 
 
@@ -173,6 +174,8 @@ class Ukf:
         self._resets = 0
         self._repairs = 0
         self._imu_out_of_order = 0
+        self._imu_invalid = 0
+        self._poses_invalid = 0
         self._last_nis = math.nan
 
     # -- public API -----------------------------------------------------------------------------
@@ -188,15 +191,27 @@ class Ukf:
     def initialize(self, t_s: float, pos_w_m: ArrayLike, q_wb: ArrayLike,
                    vel_w_m_s: ArrayLike = (0.0, 0.0, 0.0),
                    gyro_bias_rad_s: ArrayLike = (0.0, 0.0, 0.0),
-                   accel_bias_m_s2: ArrayLike = (0.0, 0.0, 0.0)) -> None:
-        """Start the filter from a known state at ``t_s`` (the rest-period path calls this)."""
+                   accel_bias_m_s2: ArrayLike = (0.0, 0.0, 0.0),
+                   cov: ArrayLike | None = None) -> None:
+        """Start the filter from a known state at ``t_s`` (the rest-period path calls this).
+
+        ``cov`` (15x15, symmetric positive semi-definite) replaces the configured initial
+        sigmas; ``ValueError`` if it is not one.
+        """
+        P0 = self._initial_covariance() if cov is None else np.array(cov, dtype=np.float64)
+        if cov is not None and (
+                P0.shape != (STATE_DIM, STATE_DIM) or not np.all(np.isfinite(P0))
+                or not np.allclose(P0, P0.T, rtol=0.0, atol=1e-12 * float(np.abs(P0).max()))
+                or float(np.linalg.eigvalsh(P0).min()) < -1e-12 * float(np.abs(P0).max())):
+            raise ValueError("initial covariance must be a symmetric positive semi-definite "
+                             f"{STATE_DIM}x{STATE_DIM} matrix")
         self._x = np.zeros(STATE_DIM)
         self._x[POS] = np.asarray(pos_w_m, dtype=np.float64)
         self._x[VEL] = np.asarray(vel_w_m_s, dtype=np.float64)
         self._x[GYRO_BIAS] = np.asarray(gyro_bias_rad_s, dtype=np.float64)
         self._x[ACCEL_BIAS] = np.asarray(accel_bias_m_s2, dtype=np.float64)
         self._q_ref = quat_normalize(np.asarray(q_wb, dtype=np.float64))
-        self._P = self._initial_covariance()
+        self._P = P0
         self._t_s = float(t_s)
         self._initialized = True
         self._nonfinite = False
@@ -222,6 +237,9 @@ class Ukf:
         gyro = np.asarray(gyro_rad_s, dtype=np.float64)
         accel = np.asarray(accel_m_s2, dtype=np.float64)
         t = float(imu_t_s)
+        if not math.isfinite(t + float(gyro.sum()) + float(accel.sum())):
+            self._imu_invalid += 1
+            return
         if not self._initialized:
             if self._prev_gyro is not None and not t > self._t_s:
                 self._imu_out_of_order += 1
@@ -243,7 +261,7 @@ class Ukf:
             g_in, a_in = gyro, accel
         self._prev_gyro, self._prev_accel, self._last_gyro = gyro, accel, gyro
         x, P, q = self._propagate(self._x, self._P, self._q_ref, dt, g_in, a_in)
-        if not math.isfinite(float(x.sum()) + float(P.trace())):
+        if not math.isfinite(float(x.sum()) + float(P.sum())):
             self._nonfinite = True          # keep the last finite state; a pose re-seeds it
             self._t_s = t
             return
@@ -256,7 +274,13 @@ class Ukf:
                     ) -> PoseVerdict:
         """Fuse a MoCap pose captured at ``capture_t_s`` (IMU clock), compensating its age."""
         pos = np.asarray(pos_w_m, dtype=np.float64)
-        q_m = quat_normalize(np.asarray(q_wb, dtype=np.float64))
+        q_raw = np.asarray(q_wb, dtype=np.float64)
+        norm = math.sqrt(float(q_raw @ q_raw)) if q_raw.shape == (4,) else math.nan
+        if (pos.shape != (3,) or not math.isfinite(float(capture_t_s) + float(pos.sum()) + norm)
+                or abs(norm - 1.0) > 0.1):
+            self._poses_invalid += 1
+            return PoseVerdict.INVALID
+        q_m = quat_normalize(q_raw)
         if not self._initialized:
             self._rest.add_pose(pos, q_m)
             self._try_initialize()
@@ -295,8 +319,9 @@ class Ukf:
             if age > cfg.mocap_stale_s:
                 flags |= HealthFlag.MOCAP_STALE
             var = np.diag(self._P)
-            if (self._nonfinite or float(np.max(var[POS])) > cfg.diverged_pos_sigma_m ** 2
-                    or float(np.max(var[ATT])) > math.radians(cfg.diverged_att_sigma_deg) ** 2):
+            if (self._nonfinite or not float(np.max(var[POS])) <= cfg.diverged_pos_sigma_m ** 2
+                    or not float(np.max(var[ATT]))
+                    <= math.radians(cfg.diverged_att_sigma_deg) ** 2):
                 flags |= HealthFlag.DIVERGED
             if float(np.max(np.abs(self._x[GYRO_BIAS]))) > cfg.max_gyro_bias_rad_s:
                 flags |= HealthFlag.GYRO_BIAS_OUT_OF_RANGE
@@ -307,6 +332,7 @@ class Ukf:
             poses_rejected=self._rejected, consecutive_rejections=self._consecutive,
             poses_too_old=self._too_old, resets=self._resets,
             covariance_repairs=self._repairs, imu_out_of_order=self._imu_out_of_order,
+            imu_invalid=self._imu_invalid, poses_invalid=self._poses_invalid,
             last_nis=self._last_nis)
 
     # -- propagation and fusion -----------------------------------------------------------------
@@ -349,7 +375,7 @@ class Ukf:
             x1, P1, y, S = self._kernel.update(x, self._repair_spd(P), z, self._R)
         nis = float(y @ np.linalg.solve(S, y))
         self._last_nis = nis
-        if not nis <= self.cfg.gate_nis:
+        if not nis <= self.cfg.gate_nis or not math.isfinite(float(x1.sum()) + float(P1.sum())):
             return None
         q1 = self._fold_attitude(x1, q_ref)
         return x1, self._condition(P1), q1
@@ -512,6 +538,8 @@ class Ukf:
             return
         m = cfg.mass_kg
         f_cmd = np.asarray(force_cmd_b_n, dtype=np.float64)
+        if not math.isfinite(float(f_cmd.sum())):
+            return
         z = rotate_single(self._q_ref, m * (accel - self._x[ACCEL_BIAS]) - f_cmd)
         # per-sample accelerometer noise variance (density^2 / dt) plus the bias uncertainty
         r = m * m * (cfg.accel_noise_m_s2_sqrt_hz ** 2 / dt

@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from estimator import EstimatorConfig, HealthFlag, PoseVerdict, Ukf
 from estimator import synthetic as sy
@@ -133,17 +135,54 @@ def test_that_dead_reckoning_grows_the_covariance_monotonically() -> None:
     assert HealthFlag.MOCAP_STALE in est.health().flags
 
 
-def test_that_a_non_finite_imu_sample_flags_divergence_and_the_next_pose_reseeds() -> None:
+def test_that_non_finite_samples_and_poses_are_dropped_and_counted() -> None:
     sc = sy.make_scenario(sy.hover(), 0.2, sy.PAPER_IMU, sy.MocapModel(), seed=8)
     est = start_at_truth(sc)
     est.predict(0.002, sc.gyro_rad_s[0], sc.accel_m_s2[0])
+    before = est.estimate()
     est.predict(0.004, [math.nan, 0.0, 0.0], sc.accel_m_s2[1])
+    est.predict(0.004, sc.gyro_rad_s[1], sc.accel_m_s2[1], [0.0, math.inf, 30.0])
+    assert est.update_pose(0.004, [0.0, math.nan, 1.0], [1, 0, 0, 0]) is PoseVerdict.INVALID
+    assert est.update_pose(0.004, [0.0, 0.0, 1.0], [0, 0, 0, 0]) is PoseVerdict.INVALID
+    state = est.estimate()
+    assert state.health.imu_invalid == 1
+    assert state.health.poses_invalid == 2
+    assert state.health.ok
+    assert state.t_s == 0.004 and before.t_s == 0.002
+    assert np.all(np.isfinite(state.cov)) and np.all(np.isfinite(state.force_ext_w_n))
+
+
+def test_that_a_blown_up_state_flags_divergence_and_the_next_pose_reseeds() -> None:
+    sc = sy.make_scenario(sy.hover(), 0.2, sy.PAPER_IMU, sy.MocapModel(), seed=8)
+    est = start_at_truth(sc)
+    est.predict(0.002, sc.gyro_rad_s[0], sc.accel_m_s2[0])
+    with np.errstate(all="ignore"):
+        est.predict(0.004, sc.gyro_rad_s[1], [1e200, 0.0, 0.0])   # finite, absurd
     state = est.estimate()
     assert HealthFlag.DIVERGED in state.health.flags
     assert np.all(np.isfinite(state.pos_w_m)) and np.all(np.isfinite(state.cov))
     verdict = est.update_pose(0.004, sc.truth.pos_w_m[1], sc.truth.q_wb[1])
     assert verdict is PoseVerdict.RESET
     assert HealthFlag.DIVERGED not in est.health().flags
+    np.testing.assert_allclose(est.estimate().pos_w_m, sc.truth.pos_w_m[1])
+
+
+def test_that_a_singular_covariance_is_repaired_and_counted() -> None:
+    # perfectly known biases: zero variance, so the first Cholesky fails
+    sc = sy.make_scenario(sy.hover(), 0.2, sy.PAPER_IMU, sy.MocapModel(), seed=10)
+    cov = np.diag([1e-4] * 9 + [0.0] * 6)
+    est = Ukf(EstimatorConfig())
+    est.initialize(0.0, sc.truth.pos_w_m[0], sc.truth.q_wb[0], cov=cov)
+    est.predict(0.002, sc.gyro_rad_s[0], sc.accel_m_s2[0])
+    state = est.estimate()
+    assert state.health.covariance_repairs == 1
+    assert np.linalg.eigvalsh(state.cov).min() > 0.0
+
+
+def test_that_an_initial_covariance_that_is_not_one_is_refused() -> None:
+    est = Ukf(EstimatorConfig())
+    with pytest.raises(ValueError, match="positive semi-definite"):
+        est.initialize(0.0, [0, 0, 1], [1, 0, 0, 0], cov=-np.eye(15))
 
 
 def test_that_out_of_order_imu_samples_and_too_old_poses_are_dropped_and_counted() -> None:
@@ -171,3 +210,40 @@ def test_that_biases_outside_their_range_are_flagged() -> None:
     assert HealthFlag.ACCEL_BIAS_OUT_OF_RANGE in flags
     est.initialize(0.0, [0, 0, 1], [1, 0, 0, 0])
     assert est.health().ok
+
+
+values = st.one_of(st.floats(-1e6, 1e6), st.sampled_from([math.nan, math.inf, -math.inf]))
+vec3 = st.tuples(values, values, values)
+quat = st.tuples(values, values, values, values)
+events = st.one_of(
+    st.tuples(st.just("imu"), st.floats(-0.01, 0.05), vec3, vec3),
+    st.tuples(st.just("pose"), st.floats(-0.5, 0.05), vec3, quat),
+    st.tuples(st.just("rest_pose"), st.floats(-0.5, 0.05), vec3, quat),
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(events, max_size=60), st.booleans())
+def test_that_arbitrary_inputs_never_raise_nor_leave_a_non_finite_estimate(
+        seq: list[tuple[str, float, tuple[float, ...], tuple[float, ...]]],
+        start_initialized: bool) -> None:
+    est = Ukf(EstimatorConfig(init_rest_s=0.01, init_min_poses=1))
+    t = 0.0
+    if start_initialized:
+        est.initialize(0.0, [0, 0, 1], [1, 0, 0, 0])
+    with np.errstate(all="ignore"):
+        for kind, dt, a, b in seq:
+            if kind == "imu":
+                t += dt
+                est.predict(t, a, b, a)
+            elif kind == "pose":
+                est.update_pose(t + dt, a, b)
+            else:   # a plausible pose, so that the rest start-up gets exercised too
+                est.update_pose(t + dt, [0.0, 0.0, 1.0], [1.0, 0.0, 0.0, 0.0])
+            state = est.estimate()
+            if est.initialized:
+                assert np.all(np.isfinite(state.cov))
+                assert np.all(np.isfinite(state.pos_w_m)) and np.all(np.isfinite(state.vel_w_m_s))
+                assert np.all(np.isfinite(state.q_wb))
+                assert np.all(np.isfinite(state.force_ext_w_n))
+                assert abs(float(np.linalg.norm(state.q_wb)) - 1.0) < 1e-9
