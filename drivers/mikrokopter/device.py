@@ -38,6 +38,7 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
+from config.schema import ConfigValueError
 from drivers.errors import DeviceLostError, DriverError, TransportError
 from drivers.mikrokopter import framing_stock, framing_tk3
 from drivers.mikrokopter import messages as mkm
@@ -262,13 +263,14 @@ class FlightCtrlConfig:
     def __post_init__(self) -> None:
         if len(self.spin_directions) != self.n_motors or any(
                 d not in (1, -1) for d in self.spin_directions):
-            raise ValueError(f"spin_directions needs {self.n_motors} values of +1 or -1")
+            raise ConfigValueError("spin_directions",
+                                   f"needs {self.n_motors} values of +1 or -1")
         for name in ("imu_rate_hz", "motor_rate_hz", "battery_rate_hz", "mag_rate_hz"):
             rate = getattr(self, name)
             if not 0.0 <= rate <= 2000.0:
-                raise ValueError(f"{name} = {rate} outside 0..2000 Hz")
+                raise ConfigValueError(name, f"{rate} outside 0..2000 Hz")
         if not 0.0 < self.min_rate_fraction <= 1.0:
-            raise ValueError("min_rate_fraction must be in (0, 1]")
+            raise ConfigValueError("min_rate_fraction", "must be in (0, 1]")
 
 
 # ------------------------------------------------------------------------------------ streams
@@ -746,9 +748,8 @@ class FlightCtrl:
         stamped = self._timebase.accept(msg.seq, t_ns)
         if stamped is None:
             return
-        axes = self.config.imu_axes
-        self._imu = ImuSample(stamped[0], stamped[1], t_ns, axes.to_body(msg.gyro_rad_s),
-                              axes.to_body(msg.accel_m_s2))
+        accel, gyro = self.config.imu_axes.imu_to_body(msg)
+        self._imu = ImuSample(stamped[0], stamped[1], t_ns, gyro, accel)
         self._imu_count += 1
         self._meters["imu"].add(t_ns)
         self._cond.notify_all()

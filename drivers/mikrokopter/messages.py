@@ -55,6 +55,8 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import ClassVar
 
+from config.schema import ConfigValueError
+
 __all__ = [
     "BOARD_MESSAGES",
     "HALF_PERIOD_SLOWEST",
@@ -147,33 +149,54 @@ def _u16(value: float) -> int:
 
 @dataclass(frozen=True, slots=True)
 class ImuAxes:
-    """Board IMU axes and scales -> body frame, in one place.
+    """Board IMU -> body frame: the one place that maps axes and scales.
 
-    ``body[i] = sign[i] * board[axis[i]]`` for both accelerometer and gyro; the defaults
-    (identity) are for a Flight-Ctrl mounted with its x arrow towards propeller 1 and its
-    component side up, the FAST-Hex mounting. The LSB sizes are the tk3 ``mkfl`` scales.
+    The wire scales are fixed by the tk3 protocol and applied by the codec
+    (:class:`ImuMessage`: 1e-3 m/s² and 1e-3 rad/s per LSB; :class:`MagMessage`: 1e-8 T), so
+    messages are already SI in the *board* frame. This object then gives the body frame of
+    ``sim_backend/vehicle.py`` (x towards propeller 1, z up; at rest the accelerometer reads +g
+    on z): ``body[i] = sign[i] * gain * board[axis[i]]``. The defaults (identity, gains 1) are
+    for a Flight-Ctrl mounted with its x arrow towards propeller 1 and its component side up,
+    the FAST-Hex mounting; ``accel_gain``/``gyro_gain`` hold a calibration if one is needed.
+    The emulator encodes with the inverse of the same object, so both ends agree.
     """
 
     axis: tuple[int, int, int] = (0, 1, 2)
     sign: tuple[int, int, int] = (1, 1, 1)
-    accel_lsb_m_s2: float = 1e-3
-    gyro_lsb_rad_s: float = 1e-3
+    accel_gain: float = 1.0
+    gyro_gain: float = 1.0
 
     def __post_init__(self) -> None:
         if sorted(self.axis) != [0, 1, 2]:
-            raise ValueError(f"axis {self.axis} is not a permutation of (0, 1, 2)")
+            raise ConfigValueError("axis", f"{self.axis} is not a permutation of (0, 1, 2)")
         if any(s not in (1, -1) for s in self.sign):
-            raise ValueError(f"sign {self.sign} must be +1 or -1 per axis")
+            raise ConfigValueError("sign", f"{self.sign} must be +1 or -1 per axis")
+        for name in ("accel_gain", "gyro_gain"):
+            if not 0.5 <= getattr(self, name) <= 2.0:
+                raise ConfigValueError(name, "a calibration gain must lie in 0.5..2")
 
-    def to_body(self, board: Vec3) -> Vec3:
+    def to_body(self, board: Vec3, gain: float = 1.0) -> Vec3:
+        """A board-frame vector in the body frame (axes only unless ``gain`` is given)."""
         a, s = self.axis, self.sign
-        return (s[0] * board[a[0]], s[1] * board[a[1]], s[2] * board[a[2]])
+        return (s[0] * gain * board[a[0]], s[1] * gain * board[a[1]],
+                s[2] * gain * board[a[2]])
 
-    def to_board(self, body: Vec3) -> Vec3:
+    def to_board(self, body: Vec3, gain: float = 1.0) -> Vec3:
+        """Inverse of :meth:`to_body`."""
         out = [0.0, 0.0, 0.0]
         for i in range(3):
-            out[self.axis[i]] = self.sign[i] * body[i]
+            out[self.axis[i]] = self.sign[i] * body[i] / gain
         return (out[0], out[1], out[2])
+
+    def imu_to_body(self, msg: ImuMessage) -> tuple[Vec3, Vec3]:
+        """(accel_m_s2, gyro_rad_s) of an ``I`` message in the body frame."""
+        return (self.to_body(msg.accel_m_s2, self.accel_gain),
+                self.to_body(msg.gyro_rad_s, self.gyro_gain))
+
+    def imu_to_board(self, accel_m_s2: Vec3, gyro_rad_s: Vec3) -> tuple[Vec3, Vec3]:
+        """Body-frame IMU vectors as the board would send them (emulators)."""
+        return (self.to_board(accel_m_s2, self.accel_gain),
+                self.to_board(gyro_rad_s, self.gyro_gain))
 
 
 # --------------------------------------------------------------------------------------------

@@ -50,6 +50,7 @@ from enum import IntEnum
 from pathlib import Path
 from typing import Literal
 
+from config.schema import ConfigValueError
 from drivers.mikrokopter import framing_stock, framing_tk3
 from drivers.mikrokopter import messages as mkm
 from sim_backend.ptylink import PtyEndpoint
@@ -85,9 +86,9 @@ class WireFaults:
         for name in ("corrupt_prob", "drop_prob"):
             value = getattr(self, name)
             if not 0.0 <= value < 1.0:
-                raise ValueError(f"{name} = {value} outside [0, 1)")
+                raise ConfigValueError(name, f"{value} outside [0, 1)")
         if self.baud is not None and self.baud <= 0:
-            raise ValueError(f"baud = {self.baud} must be > 0")
+            raise ConfigValueError("baud", f"{self.baud} must be > 0")
 
 
 @dataclass(frozen=True, slots=True)
@@ -115,11 +116,11 @@ class FlightCtrlEmulatorConfig:
 
     def __post_init__(self) -> None:
         if not 1 <= self.n_motors <= 15:
-            raise ValueError(f"n_motors = {self.n_motors} outside 1..15")
+            raise ConfigValueError("n_motors", f"{self.n_motors} outside 1..15")
         for name in ("watchdog_s", "lockstep_grace_s", "lockstep_default_period_s",
                      "motor_start_s"):
             if not getattr(self, name) > 0.0:
-                raise ValueError(f"{name} must be > 0")
+                raise ConfigValueError(name, "must be > 0")
 
 
 @dataclass(slots=True)
@@ -486,9 +487,8 @@ class EmulatedFlightCtrl:
     def _emit_imu(self) -> None:
         with self._lock:
             reading = self._vehicle.read_imu()
-        axes = self.config.imu_axes
-        msg = mkm.ImuMessage(self._imu_total & 0xFF, axes.to_board(reading.accel_m_s2),
-                             axes.to_board(reading.gyro_rad_s))
+        accel, gyro = self.config.imu_axes.imu_to_board(reading.accel_m_s2, reading.gyro_rad_s)
+        msg = mkm.ImuMessage(self._imu_total & 0xFF, accel, gyro)
         encoded = msg.encode()
         msg = mkm.ImuMessage.decode(encoded[1:])  # what the board really sends: quantised
         total, t_ns = self._imu_total, self._sim_ns

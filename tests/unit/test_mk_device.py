@@ -39,17 +39,17 @@ def link() -> tuple[FlightCtrl, LoopTransport, FakeClock]:
 
 def _push(fc: FlightCtrl, wire: LoopTransport, clock: FakeClock, frame: bytes, t_ms: float
           ) -> ImuSample | None:
+    """Deliver one frame at ``t_ms``; the sample it produced, or None once it was processed."""
     clock.t_ns = 1_000 * MS + round(t_ms * MS)
-    before = fc.link_stats()
+    before = fc.link_stats().frames
     wire.write(frame)
-    sample = fc.wait_next(0.5)
-    if sample is None:  # rejected: make sure the reader has processed it
-        for _ in range(100):
-            after = fc.link_stats()
-            if after.frames > before.frames:
-                break
-            fc.wait_next(0.01)
-    return sample
+    for _ in range(2000):
+        sample = fc.wait_next(0.005)
+        if sample is not None:
+            return sample
+        if fc.link_stats().frames > before:
+            return fc.wait_next(0.0)  # processed without a sample (or one just landed)
+    raise AssertionError("the reader never processed the frame")
 
 
 def test_that_sample_times_are_rebuilt_from_sequence_numbers(

@@ -79,6 +79,16 @@ def test_that_imu_axes_map_board_to_body_and_back() -> None:
         m.ImuAxes(axis=(0, 0, 2))
 
 
+def test_that_imu_calibration_gains_apply_to_their_own_sensor_only() -> None:
+    axes = m.ImuAxes(axis=(0, 1, 2), sign=(1, -1, -1), accel_gain=1.02, gyro_gain=0.98)
+    msg = m.ImuMessage(0, (0.0, 0.0, -9.62), (0.1, 0.0, 0.0))
+    accel, gyro = axes.imu_to_body(msg)
+    assert accel == pytest.approx((0.0, 0.0, 9.8124))
+    assert gyro == pytest.approx((0.098, 0.0, 0.0))
+    back = axes.imu_to_board(accel, gyro)
+    assert back[0] == pytest.approx(msg.accel_m_s2) and back[1] == pytest.approx(msg.gyro_rad_s)
+
+
 vec_raw = st.tuples(s16, s16, s16)
 
 
