@@ -73,6 +73,9 @@ class EstimatorConfig:
     force_walk_n_sqrt_s: float = spec(0.4, gt=0.0,
                                       doc="random-walk density of the external force")
     init_force_sigma_n: float = spec(2.0, gt=0.0)
+    force_cmd_lag_s: float = spec(0.0, ge=0.0, le=1.0,
+                                  doc="first-order lag from commanded to produced body force "
+                                      "(rotor dynamics); 0: the command is produced at once")
 
     def __post_init__(self) -> None:
         if self.diverged_pos_sigma_m >= self.max_pos_sigma_m:

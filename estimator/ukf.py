@@ -164,6 +164,7 @@ class Ukf:
         # force observer (isotropic variance: the accelerometer noise is isotropic)
         self._force_w = np.zeros(3)
         self._force_var = cfg.init_force_sigma_n ** 2
+        self._force_produced_b: FloatArray | None = None   # lagged command
         # bookkeeping
         self._rest = _RestCollector()
         self._last_pose_t_s = -math.inf
@@ -540,6 +541,14 @@ class Ukf:
         f_cmd = np.asarray(force_cmd_b_n, dtype=np.float64)
         if not math.isfinite(float(f_cmd.sum())):
             return
+        if cfg.force_cmd_lag_s > 0.0:
+            if self._force_produced_b is None:
+                self._force_produced_b = f_cmd.copy()
+            else:   # exact discretisation of the first-order lag over dt
+                blend = 1.0 - math.exp(-dt / cfg.force_cmd_lag_s)
+                self._force_produced_b = self._force_produced_b + blend * (
+                    f_cmd - self._force_produced_b)
+            f_cmd = self._force_produced_b
         z = rotate_single(self._q_ref, m * (accel - self._x[ACCEL_BIAS]) - f_cmd)
         # per-sample accelerometer noise variance (density^2 / dt) plus the bias uncertainty
         r = m * m * (cfg.accel_noise_m_s2_sqrt_hz ** 2 / dt

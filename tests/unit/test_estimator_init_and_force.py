@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from estimator import EstimatorConfig, HealthFlag, PoseVerdict, Ukf
@@ -70,3 +72,27 @@ def test_that_the_force_observer_can_be_switched_off_and_waits_for_a_command() -
     assert np.all(off.force_ext_w_n[off.initialized] == 0.0)
     _, no_cmd = force_flight(EstimatorConfig(), False, duration_s=1.0)
     assert np.all(no_cmd.force_ext_w_n[no_cmd.initialized] == 0.0)
+
+
+def test_that_the_observer_accounts_for_the_rotor_lag_between_command_and_thrust() -> None:
+    # Fixture: the rotors produce the scenario's thrust 30 ms after it is commanded, so the
+    # command is F + tau dF/dt (the inverse of the first-order lag)
+    tau = 0.03
+    force = sy.ExternalForce(constant_w_n=(0.3, 0.0, 0.0), ou_sigma_n=0.3, ou_tau_s=1.0)
+    sc = sy.make_scenario(sy.lively(), 8.0, sy.PAPER_IMU, sy.PAPER_MOCAP, seed=24, force=force)
+    dt = 1.0 / sy.PAPER_IMU.rate_hz
+    commanded = sc.force_cmd_b_n + tau * np.gradient(sc.force_cmd_b_n, dt, axis=0)
+    sc = replace(sc, force_cmd_b_n=commanded)
+    m = sc.truth.t_s >= 3.0
+    results = {}
+    for lag in (0.0, tau):
+        est = Ukf(EstimatorConfig(force_cmd_lag_s=lag))
+        tr = sc.truth
+        est.initialize(0.0, tr.pos_w_m[0], tr.q_wb[0], tr.vel_w_m_s[0])
+        log = sy.run(est, sc, feed_force=True)
+        results[lag] = np.sqrt(np.mean((log.force_ext_w_n[m] - sc.force_ext_w_n[m]) ** 2, axis=0))
+    print(f"force RMSE per axis, lag ignored {np.round(results[0.0], 3)} N, "
+          f"modelled {np.round(results[tau], 3)} N")
+    # Assert
+    assert results[tau].max() < 0.1
+    assert results[0.0].max() > 1.5 * results[tau].max()
