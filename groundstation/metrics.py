@@ -36,9 +36,9 @@ PHASES = ("all", "udt", "mdt")
 
 def quat_to_rot(q: npt.ArrayLike) -> FloatArray:
     """Rotation matrices (N, 3, 3) of quaternions (N, 4) (w, x, y, z), normalised first."""
-    q = np.asarray(q, dtype=float)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    arr = np.asarray(q, dtype=float)
+    arr = arr / np.linalg.norm(arr, axis=-1, keepdims=True)
+    w, x, y, z = arr[..., 0], arr[..., 1], arr[..., 2], arr[..., 3]
     return np.stack([
         np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
         np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),

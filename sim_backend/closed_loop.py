@@ -92,6 +92,37 @@ class TruthPlusNoise:
                             (w[0] + sw * n(), w[1] + sw * n(), w[2] + sw * n()))
 
 
+class UkfStateSource:
+    """The project's UKF (:mod:`estimator`) fed with the simulated IMU and MoCap.
+
+    Until the filter has initialised (a rest period on the ground with MoCap poses), the
+    controller gets the newest MoCap pose with zero velocity and the raw gyro.
+    """
+
+    def __init__(self, mass_kg: float, gravity_m_s2: float) -> None:
+        from estimator import EstimatorConfig, Ukf
+
+        self.ukf = Ukf(EstimatorConfig(mass_kg=mass_kg, gravity_m_s2=gravity_m_s2))
+        self._last_pose: PoseReading | None = None
+
+    def update(self, t_s: float, imu: ImuReading, mocap: list[PoseReading]) -> VehicleState:
+        self.ukf.predict(imu.t_s, imu.gyro_rad_s, imu.accel_m_s2)
+        for f in mocap:
+            self.ukf.update_pose(f.t_s, f.pos_w_m, f.q_wb)
+            self._last_pose = f
+        if not self.ukf.initialized:
+            pose = self._last_pose
+            if pose is None:
+                return VehicleState((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0),
+                                    imu.gyro_rad_s)
+            return VehicleState(pose.pos_w_m, (0.0, 0.0, 0.0), pose.q_wb, imu.gyro_rad_s)
+        e = self.ukf.estimate()
+        p, v, q, w = (e.pos_w_m.tolist(), e.vel_w_m_s.tolist(), e.q_wb.tolist(),
+                      e.omega_b_rad_s.tolist())
+        return VehicleState((p[0], p[1], p[2]), (v[0], v[1], v[2]), (q[0], q[1], q[2], q[3]),
+                            (w[0], w[1], w[2]))
+
+
 @dataclass(frozen=True)
 class FlightResult:
     metadata: dict[str, Any]
@@ -109,11 +140,15 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
                 seed: int = 0, sink: RowSink | None = None,
                 duration_s: float | None = None,
                 state_source: StateSource | None = None,
-                tilt_override_rad: float | None = None) -> FlightResult:
+                tilt_override_rad: float | None = None,
+                preroll_s: float = 0.0) -> FlightResult:
     """Fly ``mission`` in the simulator from rest on the ground, one row per tick to ``sink``.
 
     ``duration_s`` cuts the flight short (default: the mission plus 0.5 s on the ground).
     ``tilt_override_rad`` replaces the mission's alpha profile by a constant (comparisons).
+    ``preroll_s`` runs the sensors and the state source that long on the ground with the motors
+    off before the mission clock starts (an estimator's rest-period initialisation); the record
+    and the mission time start after it.
     Returns the metadata a record header should carry, with timing.
     """
     model = VehicleModel(params)
@@ -144,10 +179,14 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
     demand: float | None = None
     nan = math.nan
     wall0 = time.perf_counter()
+    for _ in range(round(preroll_s * CONTROL_RATE_HZ)):
+        source.update(sim.now_s(), sim.read_imu(), sim.poll_mocap())
+        sim.advance(dt)
+    t_offset = sim.now_s()
     for k in range(n_ticks):
         t = k * dt
         imu = sim.read_imu()
-        est = source.update(t, imu, sim.poll_mocap())
+        est = source.update(t + t_offset, imu, sim.poll_mocap())
         ref = mission.reference(t)
         alpha = sim.tilt_rad()
         margin = 0.0
@@ -193,4 +232,4 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
         ))
         sim.advance(dt)
     wall = time.perf_counter() - wall0
-    return FlightResult(meta, n_ticks * dt, wall, tuple(sim.touchdown_speeds_m_s))
+    return FlightResult(meta, n_ticks * dt + t_offset, wall, tuple(sim.touchdown_speeds_m_s))

@@ -1,13 +1,14 @@
 """``fasthex simulate``: fly a mission in the in-process simulator, faster than real time.
 
-The controller is fed the simulator's true state plus the preset's estimation noise (the seam
-for the UKF: ``sim_backend.closed_loop.StateSource``). Prints a summary table per phase (or, with
+The controller is fed the simulator's true state plus the preset's estimation noise, or with
+``--estimator ukf`` the project's UKF fed with the simulated IMU and MoCap (the seam:
+``sim_backend.closed_loop.StateSource``). Prints a summary table per phase (or, with
 ``--json``, one JSON object whose keys carry their units: ``_mm``, ``_deg``, ``_hz``, ``_s``,
 ``_frac``) and optionally writes the flight record (``--log``, format in
 :mod:`groundstation.record`).
 
-JSON keys: ``mission``, ``vehicle``, ``preset``, ``seed``, ``sim_time_s``, ``wall_time_s``,
-``realtime_factor`` (simulated seconds per wall second), ``touchdowns``,
+JSON keys: ``mission``, ``vehicle``, ``preset``, ``seed``, ``estimator``, ``sim_time_s``,
+``wall_time_s``, ``realtime_factor`` (simulated seconds per wall second), ``touchdowns``,
 ``max_touchdown_speed_m_s``, and for each phase ``all`` / ``udt`` / ``mdt``:
 ``<phase>_ticks``, ``<phase>_duration_s``, ``<phase>_pos_err_mean_mm``,
 ``<phase>_pos_err_max_mm``, ``<phase>_{roll,pitch,yaw}_err_mean_deg``,
@@ -42,6 +43,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="stop after S simulated seconds (default: the whole mission)")
     parser.add_argument("--tilt-deg", type=float, default=None, metavar="DEG",
                         help="fly at this constant tilt instead of the mission's alpha profile")
+    parser.add_argument("--estimator", choices=("truth", "ukf"), default="truth",
+                        help="what the controller acts on: the true state plus the preset's "
+                        "estimation noise (default), or the UKF fed with the simulated IMU and "
+                        "MoCap (after a 1 s rest on the ground to initialise)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--log", default=None, metavar="FILE", help="write the flight record")
 
@@ -52,7 +57,7 @@ def simulate(args: argparse.Namespace) -> dict[str, Any]:
     from groundstation.configs import load_disturbances, load_mission, load_vehicle
     from groundstation.metrics import flight_metrics
     from groundstation.record import RecordWriter
-    from sim_backend.closed_loop import fly_mission
+    from sim_backend.closed_loop import StateSource, UkfStateSource, fly_mission
 
     params = load_vehicle(args.vehicle)
     mission = Mission(load_mission(args.mission))
@@ -61,16 +66,22 @@ def simulate(args: argparse.Namespace) -> dict[str, Any]:
         from groundstation.cli import UserError
         raise UserError(f"--duration must be positive, got {args.duration}")
     tilt = None if args.tilt_deg is None else math.radians(args.tilt_deg)
+    source: StateSource | None = None
+    preroll_s = 0.0
+    if args.estimator == "ukf":
+        source, preroll_s = UkfStateSource(params.mass_kg, params.gravity_m_s2), 1.0
     writer = RecordWriter(args.log, {"mission": mission.name, "vehicle": params.name,
-                                     "preset": preset.name, "seed": args.seed})
+                                     "preset": preset.name, "seed": args.seed,
+                                     "estimator": args.estimator})
     try:
         result = fly_mission(params, mission, preset, seed=args.seed, sink=writer,
-                             duration_s=args.duration, tilt_override_rad=tilt)
+                             duration_s=args.duration, tilt_override_rad=tilt,
+                             state_source=source, preroll_s=preroll_s)
     finally:
         record = writer.close()
     out: dict[str, Any] = {
         "mission": mission.name, "vehicle": params.name, "preset": preset.name,
-        "seed": args.seed, "sim_time_s": result.sim_time_s,
+        "seed": args.seed, "estimator": args.estimator, "sim_time_s": result.sim_time_s,
         "wall_time_s": result.wall_time_s, "realtime_factor": result.realtime_factor,
         "touchdowns": len(result.touchdown_speeds_m_s),
         "max_touchdown_speed_m_s": max(result.touchdown_speeds_m_s, default=0.0),
@@ -99,7 +110,7 @@ _ROWS = (
 
 def format_table(summary: dict[str, Any]) -> str:
     lines = [f"{summary['mission']} on {summary['vehicle']}, preset {summary['preset']}, "
-             f"seed {summary['seed']}",
+             f"seed {summary['seed']}, state from {summary['estimator']}",
              f"{'':28s}{'all':>12s}{'UDT':>12s}{'MDT':>12s}"]
     for label, key, fmt in _ROWS:
         cells = []

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from groundstation.cli import main
@@ -65,3 +66,21 @@ def test_that_a_bad_mission_is_a_user_error(tmp_path: Path,
 def test_that_a_nonpositive_duration_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["simulate", "--duration", "0"]) == 2
     assert "--duration" in capsys.readouterr().err
+
+
+def test_that_the_ukf_can_fly_the_takeoff_on_the_simulated_sensors(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Fixture
+    log = tmp_path / "ukf.rec"
+    # Test: 1 s rest to initialise the filter, then takeoff and settling of Exp. 1
+    code = main(["simulate", "--estimator", "ukf", "--duration", "9", "--json", "--log",
+                 str(log)])
+    out = json.loads(capsys.readouterr().out)
+    rows = read_record(log).rows
+    # Assert: hovering at the reference, the estimate within a few mm of the truth
+    assert code == 0 and out["estimator"] == "ukf"
+    last = rows[-500:]
+    err = np.linalg.norm(last["pos_w_m"] - last["pos_ref_w_m"], axis=1)
+    est_err = np.linalg.norm(last["est_pos_w_m"] - last["pos_w_m"], axis=1)
+    assert err.max() < 0.03
+    assert est_err.max() < 0.005
