@@ -5,6 +5,8 @@ from __future__ import annotations
 import itertools
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from drivers.mikrokopter import FlightCtrl, FlightCtrlConfig, ImuAxes, ImuSample, MotorState
 from drivers.mikrokopter import framing_tk3 as tk3
@@ -169,3 +171,27 @@ def test_that_spin_rates_are_sent_as_one_w_frame_with_the_configured_directions(
     with pytest.raises(ValueError):
         fc.send_rotor_speeds_hz([50.0] * 5 + [float("nan")])
     fc.close()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.binary(max_size=300))
+def test_that_random_bytes_never_stop_the_reader_nor_hide_the_next_valid_samples(
+        noise: bytes) -> None:
+    wire = LoopTransport("loop://noise", read_timeout_s=0.01)
+    fc = FlightCtrl(wire).start()
+    try:
+        marker = (0.123, -0.456, 0.789)
+        frames = b"".join(tk3.encode_frame(mkm.ImuMessage(s, (0.0, 0.0, 9.81), marker).encode())
+                          for s in (10, 11, 12))
+        wire.write(noise)
+        wire.write(frames)
+        seen = None
+        for _ in range(400):
+            s = fc.wait_next(0.01)
+            if s is not None and s.gyro_rad_s == marker:
+                seen = s
+                break
+        assert seen is not None, fc.link_stats()
+        assert seen.seq % 256 in (10, 11, 12)
+    finally:
+        fc.close()
