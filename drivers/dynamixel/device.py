@@ -79,6 +79,10 @@ TURN_JUMP_STEPS = 2048
 class ServoError(DriverError):
     """A tilt-servo problem; ``device`` is the URI."""
 
+    def __reduce__(self) -> tuple[Any, tuple[str, str]]:
+        # Raised in the servo process and re-raised in the caller's: must survive pickling.
+        return (type(self), (self.device, self.message))
+
 
 class ServoIdentityError(ServoError):
     """The device answering is not an MX-28 with Protocol 1.0 firmware (or too old)."""
@@ -375,7 +379,7 @@ class _Link:
 
     def call(self, what: str, fn: Any, *args: Any) -> Any:
         if self.port is None:
-            raise ServoCommError(self.uri, f"{what}: port not open")
+            raise _PortLostError(self.uri, f"{what}: port not open")
         try:
             return fn(self.port, self.target.dxl_id, *args)
         except ServoCommError:
@@ -580,11 +584,18 @@ class _Worker:
     # -- commands from the owner (rare; the owner waits for the answer)
     def serve_commands(self) -> None:
         while self.conn.poll(0):
-            request = self.conn.recv()
+            request_id, *request = self.conn.recv()
+            if not self.configured:
+                error = ServoCommError(self.link.uri, f"{request[0]}: servo not connected")
+                self.conn.send((request_id, "error", error))
+                continue
             try:
-                self.conn.send(("ok", self.command(*request)))
+                self.conn.send((request_id, "ok", self.command(*request)))
+            except ServoCommError as exc:
+                self.conn.send((request_id, "error", exc))
+                raise  # the link needs the usual recovery
             except (ServoError, ValueError) as exc:
-                self.conn.send(("error", exc))
+                self.conn.send((request_id, "error", exc))
 
     def command(self, name: str, *args: Any) -> Any:
         if name == "identify":
@@ -627,8 +638,7 @@ class _Worker:
         while not self.stop.is_set():
             if self.conn is not None:
                 try:
-                    if self.configured:
-                        self.serve_commands()
+                    self.serve_commands()
                 except ServoCommError as exc:
                     self.fail(exc)
                     continue
@@ -717,6 +727,7 @@ class TiltServo:
         self._runner: mp.process.BaseProcess | threading.Thread | None = None
         self._conn: Any = None
         self._request_lock = threading.Lock()
+        self._request_id = 0
         self._last: list[float] | None = None
         self._stopped = False
 
@@ -727,6 +738,7 @@ class TiltServo:
             return self
         ours, theirs = self._ctx.Pipe()
         self._conn = ours
+        self._stopped = False
         if self.isolation == "process":
             self._stop = self._ctx.Event()
             self._runner = self._ctx.Process(
@@ -800,11 +812,18 @@ class TiltServo:
     def _request(self, timeout_s: float, *request: Any) -> Any:
         if self._runner is None:
             raise ServoError(self.config.uri, "servo not started")
+        deadline = time.monotonic() + timeout_s
         with self._request_lock:
-            self._conn.send(request)
-            if not self._conn.poll(timeout_s):
-                raise ServoCommError(self.config.uri, f"{request[0]}: no answer in {timeout_s} s")
-            status, value = self._conn.recv()
+            self._request_id += 1
+            self._conn.send((self._request_id, *request))
+            while True:
+                # Answers to earlier requests that timed out are still in the pipe: skip them.
+                if not self._conn.poll(max(0.0, deadline - time.monotonic())):
+                    raise ServoCommError(self.config.uri,
+                                         f"{request[0]}: no answer in {timeout_s} s")
+                request_id, status, value = self._conn.recv()
+                if request_id == self._request_id:
+                    break
         if status == "error":
             raise value
         return value

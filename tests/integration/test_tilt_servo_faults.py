@@ -11,7 +11,14 @@ from pathlib import Path
 
 import pytest
 
-from drivers.dynamixel import Reg, ServoHealth, ServoState, TiltServo, TiltServoConfig
+from drivers.dynamixel import (
+    Reg,
+    ServoCommError,
+    ServoHealth,
+    ServoState,
+    TiltServo,
+    TiltServoConfig,
+)
 from sim_backend.emulators.dynamixel_p1 import EmulatedMX28, Fault
 from sim_backend.vehicle import BenchVehicle
 
@@ -87,10 +94,13 @@ def test_that_an_unplugged_port_is_disconnected_and_reconnects_when_it_comes_bac
     emu.unplug()
     state = servo.wait_for(lambda s: s.health is ServoHealth.DISCONNECTED, WAIT_S)
     assert_kept_last_tilt(state)
+    with pytest.raises(ServoCommError, match="not connected"):
+        servo.home(at_tilt_rad=0.0, timeout_s=WAIT_S)
     servo.set_tilt(7 * DEG)
     emu.replug()
     state = servo.wait_for(lambda s: s.ok and abs(s.tilt_rad - 7 * DEG) < 0.01 * DEG, WAIT_S)
     assert state.reconnects == 2
+    assert servo.probe(timeout_s=WAIT_S).is_mx28_p1
 
 
 def test_that_a_measurement_older_than_100_ms_is_stale_whatever_the_worker_said(
