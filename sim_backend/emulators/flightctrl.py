@@ -250,6 +250,10 @@ class EmulatedFlightCtrl:
     def sim_time_s(self) -> float:
         return self._sim_ns / _NS
 
+    def commanded_rotor_speeds_hz(self) -> tuple[float, ...]:
+        """What the emulated BL-Ctrls last told the vehicle's rotors (Hz; 0 = stopped)."""
+        return self._rotor_cmd
+
     def __enter__(self) -> EmulatedFlightCtrl:
         return self.start()
 
