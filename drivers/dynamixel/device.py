@@ -545,8 +545,10 @@ class _Worker:
         now = time.monotonic()
         requested = self.mailbox.goal[0]
         if self.homed and math.isfinite(requested) and math.isfinite(self.goal_rad):
+            # dt is the real elapsed time, stalls included: the goal keeps to the configured rate
+            # on average, and the servo's Moving Speed (set to the same rate) bounds the motion.
             goal = rate_limited_goal(self.goal_rad, requested, cfg.max_tilt_rad,
-                                     cfg.max_tilt_rate_rad_s, min(now - self.goal_t, 0.1))
+                                     cfg.max_tilt_rate_rad_s, now - self.goal_t)
             steps = tilt_to_steps(goal, cfg.gear_ratio, self.zero)
             if steps != tilt_to_steps(self.goal_rad, cfg.gear_ratio, self.zero):
                 errors |= link.write(Reg.GOAL_POSITION, 2, to_unsigned16(steps))
