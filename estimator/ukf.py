@@ -356,6 +356,8 @@ class Ukf:
     def _propagate(self, x: FloatArray, P: FloatArray, q_ref: FloatArray, dt: float,
                    gyro: FloatArray, accel: FloatArray
                    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        # 1 ns resolution, so that the repeated IMU period hits the cached Q and F
+        dt = round(dt, 9)
         q_next = mul_exp_single(q_ref, (gyro - x[GYRO_BIAS]) * dt)
         args = (self._process_noise(dt), dt, gyro, accel, left_matrix(q_ref),
                 left_matrix(quat_conj(q_next)))
@@ -390,14 +392,14 @@ class Ukf:
     def _condition(self, P: FloatArray) -> FloatArray:
         """Symmetrise, floor the variances, cap the position sigma (congruence keeps P SPD)."""
         P = 0.5 * (P + P.T)
-        d = P[self._diag]
+        d = P.diagonal().tolist()
         cfg = self.cfg
-        if float(d.min()) < cfg.min_variance:
-            P[self._diag] = np.maximum(d, cfg.min_variance)
+        if min(d) < cfg.min_variance:
+            P[self._diag] = np.maximum(P.diagonal(), cfg.min_variance)
         cap = cfg.max_pos_sigma_m ** 2
-        if float(d[POS].max()) > cap:
+        if max(d[0:3]) > cap:
             scale = np.ones(STATE_DIM)
-            scale[POS] = np.sqrt(np.minimum(1.0, cap / d[POS]))
+            scale[POS] = np.sqrt(np.minimum(1.0, cap / P.diagonal()[POS]))
             P = P * scale[:, None] * scale[None, :]
         return P
 
@@ -551,8 +553,9 @@ class Ukf:
             f_cmd = self._force_produced_b
         z = rotate_single(self._q_ref, m * (accel - self._x[ACCEL_BIAS]) - f_cmd)
         # per-sample accelerometer noise variance (density^2 / dt) plus the bias uncertainty
+        P = self._P
         r = m * m * (cfg.accel_noise_m_s2_sqrt_hz ** 2 / dt
-                     + float(np.mean(np.diag(self._P)[ACCEL_BIAS])))
+                     + (P.item(12, 12) + P.item(13, 13) + P.item(14, 14)) / 3.0)
         gain = self._force_var / (self._force_var + r)
         self._force_w += gain * (z - self._force_w)
         self._force_var *= 1.0 - gain
