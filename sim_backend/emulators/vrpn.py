@@ -182,9 +182,12 @@ class VrpnServer:
     def _on_lob(self) -> None:
         assert self._udp is not None
         try:
-            data, _ = self._udp.recvfrom(512)
+            data, source = self._udp.recvfrom(512)
             ip, port = vrpn.decode_lob(data)
         except (OSError, vrpn.VrpnDecodeError):
+            return
+        if ip != source[0]:  # only call back the host that asked, never a third address
+            log.warning("vrpn emulator: ignoring request from %s to call %s", source[0], ip)
             return
         with self._conns_lock:
             if any(c.sock.getpeername() == (ip, port) for c in self._conns):
