@@ -24,6 +24,7 @@ from drivers.mikrokopter.device import (
     MotorStatus,
     StockFirmwareError,
     StreamStats,
+    probe,
 )
 from drivers.mikrokopter.messages import ImuAxes
 
@@ -45,4 +46,5 @@ __all__ = [
     "MotorsSnapshot",
     "StockFirmwareError",
     "StreamStats",
+    "probe",
 ]

@@ -42,7 +42,7 @@ from config.schema import ConfigValueError
 from drivers.errors import DeviceLostError, DriverError, TransportError
 from drivers.mikrokopter import framing_stock, framing_tk3
 from drivers.mikrokopter import messages as mkm
-from drivers.transport import Transport, open_transport
+from drivers.transport import Transport, open_transport, parse_uri
 
 __all__ = [
     "BatterySample",
@@ -61,6 +61,7 @@ __all__ = [
     "MotorsSnapshot",
     "StockFirmwareError",
     "StreamStats",
+    "probe",
 ]
 
 log = logging.getLogger(__name__)
@@ -422,7 +423,7 @@ class FlightCtrl:
 
     # ---------------------------------------------------------------- connection
 
-    def identify(self) -> BoardIdentity:
+    def identify(self, *, tk3: bool = True, stock: bool = True) -> BoardIdentity:
         """Ask ``?`` (tk3), then ``v`` (stock); starts the reader thread if needed.
 
         Raises :class:`FlightCtrlIdentityError` if the board answers neither.
@@ -431,27 +432,29 @@ class FlightCtrl:
         cfg = self.config
         with self._cond:
             self._identity = None
-        for _ in range(cfg.identify_attempts):
+        for _ in range(cfg.identify_attempts if tk3 else 0):
             self._write(framing_tk3.encode_frame(mkm.Identify().encode()))
             if self._wait_for(lambda: self._identity is not None, cfg.identify_timeout_s):
                 ident = (self._identity or "").lstrip("?")
                 ok = any(fnmatch.fnmatchcase(ident, p) for p in cfg.firmware_ids)
                 return BoardIdentity("tk3", ident, ok)
-        with self._cond:
-            self._listen_stock = True
-            self._stock_version = None
-        try:
-            self._write(framing_stock.encode_frame(framing_stock.Address.FLIGHT_CTRL, b"v"))
-            if self._wait_for(lambda: self._stock_version is not None,
-                              2 * cfg.identify_timeout_s):
-                assert self._stock_version is not None
-                return BoardIdentity("stock", self._stock_version.version, False)
-        finally:
+        if stock:
             with self._cond:
-                self._listen_stock = False
+                self._listen_stock = True
+                self._stock_version = None
+            try:
+                self._write(framing_stock.encode_frame(framing_stock.Address.FLIGHT_CTRL, b"v"))
+                if self._wait_for(lambda: self._stock_version is not None,
+                                  2 * cfg.identify_timeout_s):
+                    assert self._stock_version is not None
+                    return BoardIdentity("stock", self._stock_version.version, False)
+            finally:
+                with self._cond:
+                    self._listen_stock = False
+        asked = " nor ".join(q for q, on in ((f"'?' (tk3, {cfg.identify_attempts} tries)", tk3),
+                                            ("'v' (stock MikroKopter)", stock)) if on)
         raise FlightCtrlIdentityError(
-            self.device, f"no answer to '?' (tk3) after {cfg.identify_attempts} tries nor to "
-            "'v' (stock MikroKopter): check the cable, power and baud rate")
+            self.device, f"no answer to {asked}: check the cable, power and baud rate")
 
     def connect(self) -> BoardIdentity:
         """Flush, identify, refuse boards that cannot fly, then set the stream rates."""
@@ -780,3 +783,28 @@ class FlightCtrl:
             if isinstance(version, mkm.VersionInfo):
                 self._stock_version = version
                 self._cond.notify_all()
+
+
+STOCK_BAUD = 57_600
+"""Line speed of the stock HiSystems firmware (fixed at compile time)."""
+
+
+def probe(uri: str, config: FlightCtrlConfig | None = None) -> BoardIdentity:
+    """Identify the board behind ``uri`` without configuring it (for ``fasthex probe``).
+
+    Asks ``?`` and ``v`` at the URI's settings; if nothing answers and the URI is a
+    ``serial://`` port at another speed, asks ``v`` again at 57600 baud, the fixed speed of the
+    stock firmware. Raises :class:`FlightCtrlIdentityError` if no board answers.
+    """
+    with FlightCtrl.open(uri, config) as fc:
+        try:
+            return fc.identify()
+        except FlightCtrlIdentityError as first:
+            error = first
+    parsed = parse_uri(uri)
+    if parsed.scheme != "serial" or parsed.options.get("baud") == str(STOCK_BAUD):
+        raise error
+    options = {**parsed.options, "baud": str(STOCK_BAUD)}
+    stock_uri = f"serial://{parsed.target}?" + "&".join(f"{k}={v}" for k, v in options.items())
+    with FlightCtrl.open(stock_uri, config) as fc:
+        return fc.identify(tk3=False)

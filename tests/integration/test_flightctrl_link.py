@@ -19,6 +19,7 @@ from drivers.mikrokopter import (
     ImuSample,
     MotorState,
     StockFirmwareError,
+    probe,
 )
 from drivers.mikrokopter import framing_tk3 as tk3
 from drivers.mikrokopter import messages as mkm
@@ -285,3 +286,24 @@ def test_that_one_percent_corrupted_bytes_are_dropped_and_counted(make_link: Mak
           f"{len(unreadable)} unreadable (dropped, counted), {undetectable} delivered with "
           f"undetectable in-place damage; link: {stats}")
     assert math.isfinite(stats.imu.measured_rate_hz)
+
+
+@pytest.mark.parametrize(("firmware", "expected"), [("tk3", ("tk3", "mkfl1.8", True)),
+                                                     ("stock", ("stock", "2.12a", False))])
+def test_that_probe_identifies_a_board_without_configuring_it(
+        firmware: str, expected: tuple[str, str, bool]) -> None:
+    config = FlightCtrlEmulatorConfig(firmware=firmware)  # type: ignore[arg-type]
+    with EmulatedFlightCtrl(BenchVehicle(), config=config) as emu:
+        ident = probe(f"serial://{emu.path}?baud=500000",
+                      FlightCtrlConfig(identify_attempts=2, identify_timeout_s=0.2))
+        assert (ident.protocol, ident.firmware_id, ident.accepted) == expected
+        assert emu.stats().imu_sent == 0  # nothing was configured
+
+
+def test_that_probe_retries_a_silent_serial_port_at_the_stock_speed() -> None:
+    with PtyEndpoint() as silent:
+        with pytest.raises(FlightCtrlIdentityError, match=r"no answer to 'v'"):
+            probe(f"serial://{silent.path}?baud=500000",
+                  FlightCtrlConfig(identify_attempts=1, identify_timeout_s=0.05))
+        # '?' and 'v' at 500000 baud, then 'v' alone at 57600
+        assert silent.read() == b"^?$#bv@x\r#bv@x\r"
