@@ -8,7 +8,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.mikrokopter import FlightCtrl, FlightCtrlConfig, ImuAxes, ImuSample, MotorState
+from drivers.mikrokopter import (
+    FlightCtrl,
+    FlightCtrlConfig,
+    ImuAxes,
+    ImuSample,
+    LinkHealth,
+    MotorState,
+)
 from drivers.mikrokopter import framing_tk3 as tk3
 from drivers.mikrokopter import messages as mkm
 from drivers.transport import LoopTransport
@@ -193,5 +200,33 @@ def test_that_random_bytes_never_stop_the_reader_nor_hide_the_next_valid_samples
                 break
         assert seen is not None, fc.link_stats()
         assert seen.seq % 256 in (10, 11, 12)
+    finally:
+        fc.close()
+
+
+def test_that_health_reports_stale_and_low_rate_imu_streams() -> None:
+    # Fixture: on a loopback the '?' comes back as an empty identity, accepted here
+    wire = LoopTransport("loop://health", read_timeout_s=0.01)
+    clock = FakeClock()
+    fc = FlightCtrl(wire, FlightCtrlConfig(firmware_ids=("",), identify_attempts=1),
+                    clock=clock)
+    try:
+        fc.connect()
+        while wire.read(4096):  # drop the echoed rate commands
+            pass
+        # Test + Assert: 500 Hz for 0.6 s is healthy
+        for i in range(300):
+            _push(fc, wire, clock, _imu(i), 2.0 * i)
+        assert fc.health() == LinkHealth.OK
+        assert fc.link_stats().imu.measured_rate_hz == pytest.approx(500.0, rel=0.01)
+        clock.t_ns += 20 * MS  # 20 ms without a sample
+        assert fc.health() == LinkHealth.STALE
+        # 300 Hz (one sample in three lost, 60 % of the set rate) is too slow
+        t0 = 598.0 + 20.0
+        for k in range(1, 200):
+            _push(fc, wire, clock, _imu(299 + 3 * k), t0 + 6.0 * k)
+        stats = fc.link_stats()
+        assert stats.health == LinkHealth.RATE_LOW
+        assert stats.imu.missing >= 2 * 198
     finally:
         fc.close()
