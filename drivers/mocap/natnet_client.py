@@ -116,6 +116,7 @@ class NatNetClient:
         self._cmd: socket.socket | None = None
         self._data: socket.socket | None = None
         self._server_info: natnet.ServerInfo | None = None
+        self._unsupported: natnet.NatNetVersion | None = None
         self._version: natnet.NatNetVersion | None = None
         self._models: natnet.ModelDefinitions | None = None
         self._names_by_id: dict[int, str] = {}
@@ -202,10 +203,14 @@ class NatNetClient:
 
     def _handshake(self) -> None:
         cfg = self.config
-        if not self._pump_until(lambda: self._server_info is not None, cfg.connect_timeout_s,
-                                natnet.encode_connect("ping")):
+        if not self._pump_until(
+                lambda: self._server_info is not None or self._unsupported is not None,
+                cfg.connect_timeout_s, natnet.encode_connect("ping")):
             raise MocapConnectError(cfg.name, f"no SERVERINFO within {cfg.connect_timeout_s} s "
                                     "(server not running, wrong address or port?)")
+        if self._server_info is None:
+            raise MocapConnectError(cfg.name, f"server speaks NatNet {self._unsupported}; "
+                                    f"supported: {natnet.SUPPORTED_VERSIONS}")
         if cfg.version and natnet.parse_version(cfg.version) != self._version:
             if cfg.mode != "unicast":
                 raise MocapConnectError(cfg.name, "the bitstream version can only be changed "
@@ -283,7 +288,7 @@ class NatNetClient:
             self._on_frame(msg, rx_t_ns)
         elif isinstance(msg, natnet.ServerInfo):
             if msg.version not in natnet.SUPPORTED_VERSIONS:
-                self.monitor.count_malformed()
+                self._unsupported = msg.version
                 log.warning("%s: server speaks NatNet %s, supported: %s", self.config.name,
                             msg.version, natnet.SUPPORTED_VERSIONS)
                 return

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import socket
+import threading
 
 import pytest
 from hypothesis import given, settings
@@ -11,7 +13,7 @@ from hypothesis import strategies as st
 from drivers.mocap import natnet
 from drivers.mocap.natnet import FrameOfData, ModelDefinitions, RigidBodyData, ServerInfo
 from drivers.mocap.natnet_client import NatNetClient, NatNetConfig
-from drivers.mocap.pose import PoseSource, TrackingStatus
+from drivers.mocap.pose import MocapConnectError, PoseSource, TrackingStatus
 
 SERVER = ("10.1.1.5", 1510)
 FREQ = 1_000_000
@@ -126,3 +128,23 @@ def test_that_truncated_and_oversize_frames_never_produce_a_pose(
     sut._on_datagram(wire + bytes(70_000), SERVER)
     assert sut.latest() is None
     assert sut.stats().malformed_packets == len(wire) + 2
+
+
+def test_that_a_server_of_an_unsupported_version_is_refused_by_name() -> None:
+    # Fixture: a one-shot server that answers CONNECT with a NatNet 2.10 SERVERINFO
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as srv:
+        srv.bind(("127.0.0.1", 0))
+        srv.settimeout(10.0)
+
+        def answer() -> None:
+            _, addr = srv.recvfrom(1024)
+            srv.sendto(natnet.encode_server_info(ServerInfo(
+                "Motive", (2, 2, 0, 0), (2, 10, 0, 0), 0, 1511, False, "239.255.42.99")), addr)
+
+        t = threading.Thread(target=answer, daemon=True)
+        t.start()
+        cfg = NatNetConfig(command_port=srv.getsockname()[1], connect_timeout_s=10.0)
+        # Test / Assert
+        with pytest.raises(MocapConnectError, match=r"NatNet \(2, 10\)"):
+            NatNetClient(cfg).start()
+        t.join(10.0)
