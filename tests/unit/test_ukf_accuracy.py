@@ -101,3 +101,11 @@ def test_that_the_filter_is_as_accurate_with_a_1_khz_imu() -> None:
     assert pos < 1e-3
     assert vel < 10e-3
     assert att < 0.2
+
+
+def test_that_holding_the_newest_imu_sample_over_the_period_also_meets_the_targets() -> None:
+    sc, log = fly(sy.sine_x(), EstimatorConfig(imu_integration="hold"), duration_s=7.0)
+    pos, vel, att = errors(sc, log, SETTLE_S)
+    assert pos < 1e-3
+    assert vel < 10e-3
+    assert att < 0.2
