@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterator
 
 import pytest
 from hypothesis import given, settings
@@ -36,7 +37,7 @@ def _imu(seq: int, gz: float = 0.0) -> bytes:
 
 
 @pytest.fixture
-def link() -> tuple[FlightCtrl, LoopTransport, FakeClock]:
+def link() -> Iterator[tuple[FlightCtrl, LoopTransport, FakeClock]]:
     wire = LoopTransport("loop://test", read_timeout_s=0.01)
     clock = FakeClock()
     fc = FlightCtrl(wire, FlightCtrlConfig(imu_axes=ImuAxes(axis=(1, 0, 2), sign=(1, 1, -1))),
