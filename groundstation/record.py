@@ -70,6 +70,28 @@ RECORD_DTYPE = np.dtype([
 Rows = npt.NDArray[np.void]
 
 
+_FIELD_NAMES: tuple[str, ...] = tuple(RECORD_DTYPE.names or ())
+_FIELD_ZERO: dict[str, Any] = {
+    name: (0.0,) * RECORD_DTYPE[name].shape[0] if RECORD_DTYPE[name].shape else 0
+    for name in _FIELD_NAMES
+}
+_FIELD_ZERO.update({name: (1.0, 0.0, 0.0, 0.0) for name in ("q_wr", "q_wd", "q_wb",
+                                                            "est_q_wb")})
+_FIELD_ZERO["eta_f"] = 1.0
+
+
+def row_from_fields(**fields: Any) -> tuple[Any, ...]:
+    """A row tuple from keyword fields (the others zero, quaternions identity).
+
+    Convenient and checked (unknown names raise ``TypeError``), at ~5 us per row; the hot loop
+    of the simulator builds its tuples directly in :data:`RECORD_DTYPE` order.
+    """
+    unknown = set(fields) - set(_FIELD_NAMES)
+    if unknown:
+        raise TypeError(f"unknown record fields: {', '.join(sorted(unknown))}")
+    return tuple(fields.get(name, _FIELD_ZERO[name]) for name in _FIELD_NAMES)
+
+
 class RecordFormatError(ValueError):
     """The file is not a flight record this version can read."""
 

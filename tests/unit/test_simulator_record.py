@@ -22,6 +22,7 @@ from groundstation.record import (
     RecordWriter,
     parse_record,
     read_record,
+    row_from_fields,
 )
 
 
@@ -147,3 +148,15 @@ def test_that_the_metrics_measure_what_they_say() -> None:
     assert m["all_spin_within_limits"] == 1.0
     assert m["udt_ticks"] == 0 and math.isnan(m["udt_pos_err_mean_mm"])
     assert m["mdt_ticks"] == 2000 - 1000  # the first 2 s of the phase are skipped
+
+
+def test_that_rows_can_be_built_from_named_fields() -> None:
+    # Test
+    row = np.array([row_from_fields(t_s=1.5, pos_w_m=(1.0, 2.0, 3.0), segment=2)],
+                   dtype=RECORD_DTYPE)[0]
+    # Assert
+    assert row["t_s"] == 1.5 and row["segment"] == 2
+    assert tuple(row["pos_w_m"]) == (1.0, 2.0, 3.0)
+    assert tuple(row["q_wb"]) == (1.0, 0.0, 0.0, 0.0)
+    with pytest.raises(TypeError, match="pos_m"):
+        row_from_fields(pos_m=(0, 0, 0))
