@@ -223,6 +223,7 @@ class EmulatedFlightCtrl:
         self._start_ns = self._sim_ns
         self._anchor()
         self._last_w_ns = self._sim_ns
+        self._last_w_wall = time.monotonic()
         self._apply_rotors()
         self._thread = threading.Thread(target=self._run, name="emulated-flightctrl",
                                         daemon=True)
