@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -199,3 +200,17 @@ def test_that_spin_rates_are_clamped_and_flagged() -> None:
 
 def test_that_the_feedforward_mode_is_off_in_the_paper_faithful_config() -> None:
     assert PARAMS.controller.attitude_feedforward is False
+
+
+def test_that_the_feedforward_mode_damps_the_rate_relative_to_the_reference() -> None:
+    # Fixture: on the reference attitude, turning with the reference at 0.5 rad/s about x
+    ff = dataclasses.replace(PARAMS, controller=dataclasses.replace(
+        PARAMS.controller, attitude_feedforward=True))
+    ref = Reference(0.0, HOVER, ZERO3, ZERO3, IDENTITY_Q, (0.5, 0.0, 0.0), A30)
+    state = _state(omega=(0.5, 0.0, 0.0))
+    # Test
+    with_ff = GeometricController(ff).step(0.0, state, ref, A30)
+    paper = GeometricController(PARAMS).step(0.0, state, ref, A30)
+    # Assert: the paper's law damps the whole rate (-K_w w), the feed-forward mode nothing
+    assert with_ff.u_tau_b_n_m == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
+    assert paper.u_tau_b_n_m[0] == pytest.approx(-1.5 * 0.5)
