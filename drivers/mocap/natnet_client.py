@@ -126,6 +126,7 @@ class NatNetClient:
         self._last_frame: natnet.FrameOfData | None = None
         self._response: natnet.Response | natnet.UnrecognizedRequest | None = None
         self._frames_seen = 0
+        self._next_keepalive = 0.0
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -136,8 +137,12 @@ class NatNetClient:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def start(self) -> None:
-        """Open sockets, handshake, resolve the body, start the receive thread."""
+    def start(self, receive_thread: bool = True) -> None:
+        """Open sockets, handshake, resolve the body, start the receive thread.
+
+        With ``receive_thread=False`` nothing receives in the background: the owner calls
+        :meth:`poll` (a lockstep loop does, so that it sees exactly the datagrams that arrived
+        before its IMU sample, whatever the thread scheduling)."""
         cfg = self.config
         try:
             self._cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -153,8 +158,34 @@ class NatNetClient:
             self.close()
             raise
         self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="natnet-rx", daemon=True)
-        self._thread.start()
+        for sock in (self._cmd, self._data):
+            if sock is not None:
+                sock.setblocking(False)
+        self._next_keepalive = time.monotonic()
+        if receive_thread:
+            self._thread = threading.Thread(target=self._run, name="natnet-rx", daemon=True)
+            self._thread.start()
+
+    def poll(self) -> int:
+        """Receive every datagram already waiting, in the caller's thread; never blocks.
+        Returns the number of datagrams handled. Also sends the unicast keep-alive when due."""
+        if self.config.mode == "unicast":
+            now = time.monotonic()
+            if now >= self._next_keepalive:
+                self._send(natnet.encode_keepalive())
+                self._next_keepalive = now + self.config.keepalive_period_s
+        handled = 0
+        for sock in (self._cmd, self._data):
+            while sock is not None:
+                try:
+                    data, addr = sock.recvfrom(65536)
+                except (BlockingIOError, InterruptedError):
+                    break
+                except OSError:
+                    return handled
+                self._on_datagram(data, addr)
+                handled += 1
+        return handled
 
     def close(self) -> None:
         self._stop.set()

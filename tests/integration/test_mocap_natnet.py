@@ -273,3 +273,30 @@ def test_that_a_silent_unicast_client_is_dropped_after_the_keepalive_timeout() -
             assert server.unicast_clients == []
     finally:
         server.close()
+
+
+def test_that_a_polled_client_sees_exactly_the_frames_sent_before_the_poll(
+        lockstep: list[NatNetServer]) -> None:
+    # Fixture: no receive thread; the owner polls, as the lockstep flight loop does.
+    server, cfg = _pair("4.1", "unicast")
+    client = _start(server, cfg, lockstep)
+    client.start(receive_thread=False)
+    vehicle = server._vehicle
+    assert isinstance(vehicle, BenchVehicle)
+    try:
+        seen = []
+        for _ in range(5):
+            # Test: a frame is sent, then polled at once: loopback delivery is synchronous
+            vehicle.advance(0.01)
+            assert server.publish_due(vehicle.now_s()) == 1
+            assert client.poll() == 1
+            sample = client.latest()
+            assert sample is not None
+            seen.append(sample.frame_number)
+            pose = vehicle.true_pose()
+            _assert_pose(sample, pose.pos_w_m, pose.q_wb)
+        # Assert: nothing else is waiting; frames consecutive
+        assert client.poll() == 0
+        assert seen == list(range(seen[0], seen[0] + 5))
+    finally:
+        client.close()
