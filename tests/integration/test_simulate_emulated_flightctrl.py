@@ -36,8 +36,9 @@ def test_that_the_controller_takes_off_through_the_emulated_flight_ctrl() -> Non
     lock = threading.Lock()
     parser = tk3.Tk3Parser()
     imus = 0
-    with EmulatedFlightCtrl(sim, lock=lock,
-                            config=FlightCtrlEmulatorConfig(clock="lockstep")) as emu:
+    # a long grace period: on a loaded machine the emulator must never free-run on its own
+    config = FlightCtrlEmulatorConfig(clock="lockstep", lockstep_grace_s=TIMEOUT_S)
+    with EmulatedFlightCtrl(sim, lock=lock, config=config) as emu:
         link = open_transport(f"pty://{emu.path}")
         try:
             link.write(tk3.encode_frame(mkm.StartMotors().encode()))
