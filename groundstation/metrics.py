@@ -123,7 +123,7 @@ def flight_metrics(rows: np.ndarray, *, min_spin_hz: float | None = None,
         out[f"{name}_spin_min_hz"] = float(np.min(spins[m])) if n else math.nan
         out[f"{name}_spin_max_hz"] = float(np.max(spins[m])) if n else math.nan
         out[f"{name}_spin_saturated_frac"] = mean(sat.astype(float))
-        out[f"{name}_internal_force_loss_mean"] = mean(loss)
+        out[f"{name}_internal_force_loss_mean_frac"] = mean(loss)
     if min_spin_hz is not None and max_spin_hz is not None:
         s = spins[masks["all"]]
         out["all_spin_within_limits"] = float(bool(

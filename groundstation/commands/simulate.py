@@ -8,13 +8,14 @@ The controller is fed the simulator's true state plus the preset's estimation no
 :mod:`groundstation.record`).
 
 JSON keys: ``mission``, ``vehicle``, ``preset``, ``seed``, ``estimator``, ``sim_time_s``,
-``wall_time_s``, ``realtime_factor`` (simulated seconds per wall second), ``touchdowns``,
+``wall_time_s``, ``sim_s_per_wall_s`` (simulated seconds per wall second), ``touchdowns``,
 ``max_touchdown_speed_m_s``, and for each phase ``all`` / ``udt`` / ``mdt``:
 ``<phase>_ticks``, ``<phase>_duration_s``, ``<phase>_pos_err_mean_mm``,
 ``<phase>_pos_err_max_mm``, ``<phase>_{roll,pitch,yaw}_err_mean_deg``,
 ``<phase>_rd_dev_mean_deg``, ``<phase>_rd_dev_max_deg``, ``<phase>_inner_err_mean_deg``,
 ``<phase>_spin_min_hz``, ``<phase>_spin_max_hz``, ``<phase>_spin_saturated_frac``,
-``<phase>_internal_force_loss_mean`` (1 - eta_f); ``all_spin_within_limits`` (1 or 0).
+``<phase>_internal_force_loss_mean_frac`` (1 - eta_f); ``all_spin_within_limits`` (1 or 0).
+Counts (``*_ticks``, ``touchdowns``) and ``sim_s_per_wall_s`` carry their unit in the name.
 Phases as in :mod:`groundstation.metrics`.
 """
 
@@ -82,7 +83,7 @@ def simulate(args: argparse.Namespace) -> dict[str, Any]:
     out: dict[str, Any] = {
         "mission": mission.name, "vehicle": params.name, "preset": preset.name,
         "seed": args.seed, "estimator": args.estimator, "sim_time_s": result.sim_time_s,
-        "wall_time_s": result.wall_time_s, "realtime_factor": result.realtime_factor,
+        "wall_time_s": result.wall_time_s, "sim_s_per_wall_s": result.realtime_factor,
         "touchdowns": len(result.touchdown_speeds_m_s),
         "max_touchdown_speed_m_s": max(result.touchdown_speeds_m_s, default=0.0),
     }
@@ -104,7 +105,7 @@ _ROWS = (
     ("spin min [Hz]", "spin_min_hz", "{:.1f}"),
     ("spin max [Hz]", "spin_max_hz", "{:.1f}"),
     ("saturated ticks [%]", "spin_saturated_frac", "{:.2%}"),
-    ("internal-force loss [%]", "internal_force_loss_mean", "{:.2%}"),
+    ("internal-force loss [%]", "internal_force_loss_mean_frac", "{:.2%}"),
 )
 
 
@@ -118,8 +119,10 @@ def format_table(summary: dict[str, Any]) -> str:
             v = summary.get(f"{phase}_{key}", math.nan)
             cells.append("-" if isinstance(v, float) and math.isnan(v) else fmt.format(v))
         lines.append(f"{label:28s}" + "".join(f"{c:>12s}" for c in cells))
+    lines.append(f"touchdowns: {summary['touchdowns']} (fastest "
+                 f"{summary['max_touchdown_speed_m_s']:.2f} m/s)")
     lines.append(f"simulated {summary['sim_time_s']:.1f} s in {summary['wall_time_s']:.1f} s "
-                 f"wall: {summary['realtime_factor']:.1f}x real time")
+                 f"wall: {summary['sim_s_per_wall_s']:.1f}x real time")
     return "\n".join(lines)
 
 

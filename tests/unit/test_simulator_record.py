@@ -144,7 +144,7 @@ def test_that_the_metrics_measure_what_they_say() -> None:
     assert m["all_rd_dev_mean_deg"] == pytest.approx(2.0, rel=1e-3)
     assert m["all_inner_err_mean_deg"] == pytest.approx(math.sqrt(5.0), rel=1e-3)
     assert m["all_spin_saturated_frac"] == 1.0
-    assert m["all_internal_force_loss_mean"] == pytest.approx(0.13, rel=1e-5)
+    assert m["all_internal_force_loss_mean_frac"] == pytest.approx(0.13, rel=1e-5)
     assert m["all_spin_within_limits"] == 1.0
     assert m["udt_ticks"] == 0 and math.isnan(m["udt_pos_err_mean_mm"])
     assert m["mdt_ticks"] == 2000 - 1000  # the first 2 s of the phase are skipped
