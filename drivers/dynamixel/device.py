@@ -52,8 +52,10 @@ from drivers.dynamixel.control_table import (
     MULTI_TURN_LIMIT,
     MULTI_TURN_MAX_STEPS,
     MULTI_TURN_MIN_STEPS,
+    NO_LOAD_SPEED_RPM,
     RAD_PER_STEP,
     STATE_BLOCK_LENGTH,
+    STEPS_PER_TURN,
     ErrorBit,
     Mode,
     Reg,
@@ -72,7 +74,9 @@ SDK_BAUDS = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 
              1000000, 1152000, 2000000, 2500000, 3000000, 3500000, 4000000)
 """The only rates ``PortHandler.setBaudRate`` accepts (dynamixel-sdk 4.1.0)."""
 TURN_JUMP_STEPS = 2048
-"""A Present Position jump larger than half a turn between two reads means a power cycle."""
+"""A Present Position jump larger than half a turn (plus what the servo can move at top speed in
+the time between the two reads) means the turn count restarted: a power cycle."""
+TOP_SPEED_STEPS_S = NO_LOAD_SPEED_RPM * STEPS_PER_TURN / 60.0
 
 
 # ---------------------------------------------------------------------------- errors
@@ -478,6 +482,9 @@ class _Worker:
         self.goal_rad = math.nan      # last rate-limited goal written
         self.goal_t = 0.0
         self.last_present: int | None = None
+        self.last_present_t = 0.0
+        self.ever_configured = False
+        self.recovering = False
         self.had_errors = False
         self.next_reconnect = 0.0
 
@@ -527,21 +534,37 @@ class _Worker:
                 raise _MisconfiguredError(link.uri, "multi-turn mode refused (EEPROM locked?)")
         speed = moving_speed_for_rate(cfg.max_tilt_rate_rad_s / cfg.gear_ratio)
         link.write(Reg.MOVING_SPEED, 2, speed)
+        self.check_power_marker()
         present = to_signed16(_u16(link.read(Reg.PRESENT_POSITION, 2)[0], 0))
-        if self.last_present is not None and abs(present - self.last_present) > TURN_JUMP_STEPS:
-            # The turn count moved under us: the servo was power-cycled; the zero is lost.
-            self.homed = False
+        self.last_present, self.last_present_t = present, time.monotonic()
         # Hold where it is: goal = present before the torque comes on.
         link.write(Reg.GOAL_POSITION, 2, to_unsigned16(present))
         link.write(Reg.TORQUE_ENABLE, 1, 1)
+        # LED on = "configured since power-up": RAM, so a power cycle clears it.
+        link.write(Reg.LED, 1, 1)
+        self.ever_configured = True
+        self.recovering = False
         self.goal_rad = steps_to_tilt(present, cfg.gear_ratio, self.zero)
         self.goal_t = time.monotonic()
         self.configured = True
+
+    def check_power_marker(self) -> None:
+        """After a reconnect or a silent spell: if the LED we left on is off, the servo was
+        power-cycled, and its turn count (our zero) is gone."""
+        if self.ever_configured and self.link.read(Reg.LED, 1)[0][0] == 0:
+            log.warning("%s: servo was power-cycled: home it again", self.link.uri)
+            self.homed = False
+            self.configured = False
 
     # -- one cycle
     def cycle(self) -> tuple[ServoHealth, ErrorBit]:
         cfg, link = self.cfg, self.link
         errors = ErrorBit.NONE
+        if self.recovering:
+            self.check_power_marker()
+            self.recovering = False
+            if not self.configured:
+                raise _ReconfigureError(link.uri, "power cycle: configure again")
         now = time.monotonic()
         requested = self.mailbox.goal[0]
         if self.homed and math.isfinite(requested) and math.isfinite(self.goal_rad):
@@ -558,12 +581,14 @@ class _Worker:
         errors |= err
         t_s = time.monotonic()
         present = to_signed16(_u16(data, 0))
-        if self.last_present is not None and abs(present - self.last_present) > TURN_JUMP_STEPS:
-            # No motion covers half a turn in one cycle: the turn count restarted (power cycle).
-            # The zero is lost; configure again (torque on, holding) and wait for home().
-            self.homed = False
-            self.configured = False
-        self.last_present = present
+        if self.last_present is not None:
+            reach = TURN_JUMP_STEPS + TOP_SPEED_STEPS_S * (t_s - self.last_present_t)
+            if abs(present - self.last_present) > reach:
+                # Farther than the servo can move: the turn count restarted (a power cycle too
+                # short to miss a reply). The zero is lost; configure again, wait for home().
+                self.homed = False
+                self.configured = False
+        self.last_present, self.last_present_t = present, t_s
         v = self.values
         v[_S.T_S] = t_s
         v[_S.SEQ] += 1
@@ -615,6 +640,7 @@ class _Worker:
         raise ValueError(f"unknown servo command {name!r}")
 
     def fail(self, exc: ServoCommError) -> None:
+        self.recovering = True
         health = self.link.result_code(exc)
         slot = _S.CORRUPT if health is ServoHealth.CORRUPT_REPLY else _S.TIMEOUTS
         if health is not ServoHealth.DISCONNECTED:
@@ -670,6 +696,9 @@ class _Worker:
                     continue
             try:
                 health, errors = self.cycle()
+            except _ReconfigureError:
+                self.publish(ServoHealth.HOMING_REQUIRED)
+                continue
             except ServoCommError as exc:
                 self.fail(exc)
                 deadline = time.monotonic()
@@ -696,6 +725,10 @@ class _Worker:
 
 class _MisconfiguredError(ServoError):
     pass
+
+
+class _ReconfigureError(ServoCommError):
+    """Not a fault of the link: the servo must be configured again before the next cycle."""
 
 
 def _run_worker(cfg: TiltServoConfig, mailbox: _Mailbox, conn: Any, stop: Any,

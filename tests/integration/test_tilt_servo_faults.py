@@ -121,3 +121,16 @@ def test_that_a_wrong_baud_in_the_uri_is_no_reply_not_a_crash(tmp_path: Path) ->
             TiltServo(TiltServoConfig(uri=f"serial://{emu.path}?baud=57600&id=1")) as servo:
         state = servo.wait_for(lambda s: s.health is ServoHealth.NO_REPLY, WAIT_S)
         assert math.isnan(state.tilt_rad) and state.timeouts >= 1
+
+
+def test_that_a_power_cycle_during_a_silence_is_caught_by_the_led_marker(
+        rig: tuple[EmulatedMX28, TiltServo]) -> None:
+    emu, servo = rig
+    assert emu.register(Reg.LED) == 1
+    emu.set_fault(Fault.SILENT)
+    servo.wait_for(lambda s: s.health is ServoHealth.NO_REPLY, WAIT_S)
+    emu.power_cycle()  # at 5 deg = 1138 steps: no jump in the turn count to see
+    emu.set_fault(Fault.NONE)
+    state = servo.wait_for(lambda s: s.health is ServoHealth.HOMING_REQUIRED, WAIT_S)
+    assert not state.homed
+    servo.wait_for(lambda s: emu.register(Reg.TORQUE_ENABLE) == 1, WAIT_S)  # holding again
