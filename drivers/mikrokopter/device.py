@@ -113,6 +113,14 @@ class ImuSample:
     """When the reader thread received the bytes (host clock)."""
     gyro_rad_s: Vec3
     accel_m_s2: Vec3
+    period_ns: int = 2_000_000
+    """The configured IMU period. ``seq * period_ns`` is the board's own time base: the one
+    to integrate with (exact in lockstep, where host arrival times mean nothing)."""
+
+    @property
+    def board_t_ns(self) -> int:
+        """Sample time on the board's clock (``seq * period_ns``)."""
+        return self.seq * self.period_ns
 
 
 class MotorState(enum.Enum):
@@ -752,7 +760,8 @@ class FlightCtrl:
         if stamped is None:
             return
         accel, gyro = self.config.imu_axes.imu_to_body(msg)
-        self._imu = ImuSample(stamped[0], stamped[1], t_ns, gyro, accel)
+        self._imu = ImuSample(stamped[0], stamped[1], t_ns, gyro, accel,
+                              self._timebase.period_ns)
         self._imu_count += 1
         self._meters["imu"].add(t_ns)
         self._cond.notify_all()

@@ -134,8 +134,9 @@ def test_that_imu_streams_at_the_set_rate_in_lockstep(rate_hz: float, make_link:
     period_ns = round(1e9 / rate_hz)
     seqs = [s.seq for s in samples]
     assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
-    for a, b in itertools.pairwise(seqs):
-        assert truth[b].t_ns - truth[a].t_ns == period_ns
+    for a, b in itertools.pairwise(samples):
+        assert truth[b.seq].t_ns - truth[a.seq].t_ns == period_ns
+        assert b.board_t_ns - a.board_t_ns == period_ns
     for s in samples:
         sent = truth[s.seq].message
         assert s.accel_m_s2 == sent.accel_m_s2 and s.gyro_rad_s == sent.gyro_rad_s
