@@ -6,8 +6,10 @@ allocation, no lock, no system call). The ring never blocks the writer: when the
 whole ring behind, new rows are dropped and counted (the flight record then shows the gap),
 which never happens at the reader's normal pace of one drain per 20-100 ms.
 
+Rows have one numpy dtype (the flight record's structured row, or plain float64 columns); the
+loop assigns a row tuple straight into the shared slot (about 3.5 us for a flight-record row).
 Layout of the shared block: a header of four int64 (write sequence, read sequence, dropped rows,
-number of columns) followed by ``capacity x n_cols`` float64. Single writer, single reader; the
+row size in bytes) followed by ``capacity`` rows. Single writer, single reader; the
 writer stores the row first and the write sequence second, and the reader reads the sequence
 before the rows below it. x86-64 keeps stores in program order, so the reader never sees a
 half-written row there; on weakly ordered CPUs a row could in principle be read stale, which
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 from multiprocessing import resource_tracker, shared_memory
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -30,10 +33,14 @@ _HEADER = 4  # int64 slots: write_seq, read_seq, dropped, n_cols
 class TelemetryRing:
     """Single-writer / single-reader ring of float64 rows in shared memory."""
 
-    def __init__(self, n_cols: int, capacity: int = 1 << 14, *, name: str | None = None) -> None:
-        """Create a ring (``name=None``) or attach to an existing one by ``name``."""
+    def __init__(self, dtype: npt.DTypeLike, capacity: int = 1 << 14, *,
+                 name: str | None = None) -> None:
+        """Create a ring (``name=None``) or attach to an existing one by ``name``.
+
+        ``dtype`` is one row: e.g. ``RECORD_DTYPE`` or ``(np.float64, 30)``."""
         self._owner = name is None
-        size = 8 * _HEADER + 8 * n_cols * capacity
+        self.dtype = np.dtype(dtype)
+        size = 8 * _HEADER + self.dtype.itemsize * capacity
         if self._owner:
             self._shm = shared_memory.SharedMemory(create=True, size=size)
         else:
@@ -44,20 +51,20 @@ class TelemetryRing:
                 resource_tracker.unregister(self._shm._name, "shared_memory")  # type: ignore[attr-defined]
         self._header = np.ndarray((_HEADER,), dtype=np.int64, buffer=self._shm.buf, offset=0)
         if self._owner:
-            self._header[:] = (0, 0, 0, n_cols)
-        elif int(self._header[3]) != n_cols:
-            raise ValueError(f"ring {name} has {int(self._header[3])} columns, not {n_cols}")
-        self._rows = np.ndarray((capacity, n_cols), dtype=np.float64, buffer=self._shm.buf,
-                                offset=8 * _HEADER)
+            self._header[:] = (0, 0, 0, self.dtype.itemsize)
+        elif int(self._header[3]) != self.dtype.itemsize:
+            raise ValueError(f"ring {name} has rows of {int(self._header[3])} bytes, "
+                             f"not {self.dtype.itemsize}")
+        self._rows: npt.NDArray[Any] = np.ndarray((capacity,), dtype=self.dtype,
+                                                  buffer=self._shm.buf, offset=8 * _HEADER)
         self.capacity = capacity
-        self.n_cols = n_cols
 
     @property
     def name(self) -> str:
         return self._shm.name
 
     # -- writer (the loop) -------------------------------------------------------------------
-    def push(self, row: npt.NDArray[np.float64]) -> bool:
+    def push(self, row: Any) -> bool:
         """Append one row; ``False`` (and counted) if the reader is a whole ring behind."""
         header = self._header
         seq = int(header[0])
@@ -77,12 +84,12 @@ class TelemetryRing:
         return int(self._header[0])
 
     # -- reader (the telemetry process) ------------------------------------------------------
-    def drain(self) -> npt.NDArray[np.float64]:
-        """Copy out every row written since the last drain (shape ``(k, n_cols)``)."""
+    def drain(self) -> npt.NDArray[Any]:
+        """Copy out every row written since the last drain (``k`` rows of the ring's dtype)."""
         end = int(self._header[0])
         start = int(self._header[1])
         if end == start:
-            return np.empty((0, self.n_cols))
+            return np.empty((0,), dtype=self.dtype)
         idx = np.arange(start, end) % self.capacity
         rows = self._rows[idx].copy()
         self._header[1] = end

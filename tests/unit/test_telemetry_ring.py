@@ -11,7 +11,7 @@ from groundstation.telemetry import TelemetryRing
 
 
 def _reader(name: str, n_cols: int, expected: int, out: mp.Queue) -> None:  # type: ignore[type-arg]
-    ring = TelemetryRing(n_cols, capacity=64, name=name)
+    ring = TelemetryRing((np.float64, n_cols), capacity=64, name=name)
     got: list[np.ndarray] = []
     import time
 
@@ -28,7 +28,7 @@ def _reader(name: str, n_cols: int, expected: int, out: mp.Queue) -> None:  # ty
 
 def test_that_rows_reach_another_process_in_order() -> None:
     ctx = mp.get_context("spawn")
-    ring = TelemetryRing(5, capacity=64)
+    ring = TelemetryRing((np.float64, 5), capacity=64)
     q: mp.Queue = ctx.Queue()  # type: ignore[type-arg]
     proc = ctx.Process(target=_reader, args=(ring.name, 5, 40, q))
     proc.start()
@@ -45,7 +45,7 @@ def test_that_rows_reach_another_process_in_order() -> None:
 
 
 def test_that_a_full_ring_drops_and_counts_new_rows() -> None:
-    ring = TelemetryRing(3, capacity=8)
+    ring = TelemetryRing((np.float64, 3), capacity=8)
     try:
         accepted = [ring.push(np.full(3, float(k))) for k in range(12)]
         assert accepted == [True] * 8 + [False] * 4
@@ -59,13 +59,30 @@ def test_that_a_full_ring_drops_and_counts_new_rows() -> None:
 
 
 def test_that_attaching_with_the_wrong_width_is_refused() -> None:
-    ring = TelemetryRing(3, capacity=8)
+    ring = TelemetryRing((np.float64, 3), capacity=8)
     try:
         try:
-            TelemetryRing(4, capacity=8, name=ring.name)
+            TelemetryRing((np.float64, 4), capacity=8, name=ring.name)
         except ValueError as exc:
-            assert "has 3 columns, not 4" in str(exc)
+            assert "has rows of 24 bytes, not 32" in str(exc)
         else:
             raise AssertionError("expected ValueError")
+    finally:
+        ring.close()
+
+
+def test_that_flight_record_rows_pass_through_intact() -> None:
+    from groundstation.record import RECORD_DTYPE, row_from_fields
+
+    ring = TelemetryRing(RECORD_DTYPE, capacity=4)
+    try:
+        row = row_from_fields(t_s=1.5, segment=3, pos_w_m=(0.1, -0.2, 1.0),
+                              spin_cmd_hz=(16.0, 20.0, 30.0, 40.0, 50.0, 102.0))
+        assert ring.push(row)
+        got = ring.drain()
+        assert got.dtype == RECORD_DTYPE and len(got) == 1
+        assert got["t_s"][0] == 1.5 and got["segment"][0] == 3
+        np.testing.assert_allclose(got["pos_w_m"][0], (0.1, -0.2, 1.0), rtol=1e-6)
+        np.testing.assert_allclose(got["spin_cmd_hz"][0], (16, 20, 30, 40, 50, 102))
     finally:
         ring.close()

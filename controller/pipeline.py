@@ -1,0 +1,126 @@
+"""One control tick of the paper's stack, shared by the simulator and the ground station.
+
+mission reference -> tilt planner (rate-limited alpha command, or ``auto``) -> full-pose
+geometric controller (spin rates). Pure: no I/O, no clock; the caller passes the mission time,
+the state estimate and the measured tilt, and sends the outputs to its actuators.
+
+Also the failsafe landing reference (:class:`LandHere`): a smooth descent from wherever the
+vehicle is when a failsafe fires, keeping its heading, level attitude requested.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from controller.geometric import Command, GeometricController
+from controller.missions import Mission
+from controller.model import LateralBound, VehicleModel
+from controller.params import VehicleParams
+from controller.reference import Quat, Reference, Vec3, VehicleState
+from controller.tilt_planner import TiltPlanner
+
+#: how often the auto tilt mode re-evaluates the look-ahead lateral demand (s)
+AUTO_UPDATE_PERIOD_S = 0.1
+
+
+@dataclass(frozen=True, slots=True)
+class ControlTick:
+    """Everything one tick decided, for the actuators and the flight record."""
+
+    ref: Reference
+    alpha_ref_rad: float  # NaN while the planner is in auto mode
+    alpha_cmd_rad: float
+    cmd: Command
+
+
+class FlightComputer:
+    """Mission, tilt planner and controller for one vehicle (explicit state inside)."""
+
+    def __init__(self, params: VehicleParams, mission: Mission, *,
+                 model: VehicleModel | None = None,
+                 tilt_override_rad: float | None = None) -> None:
+        self.params = params
+        self.mission = mission
+        self.model = model or VehicleModel(params)
+        bound = LateralBound.for_model(self.model)
+        self.controller = GeometricController(params, model=self.model, bound=bound)
+        # the planner's capability: the same fit without the controller's conservative scale
+        self.planner = TiltPlanner(params, capability=LateralBound(bound.coeffs_n, 1.0,
+                                                                   bound.dead_zone_deg))
+        self.tilt_override_rad = tilt_override_rad
+        self._next_auto_s = 0.0
+        self._axes_alpha = math.nan
+        self._axes: list[tuple[float, float, float]] = []
+
+    def step(self, t_s: float, state: VehicleState, alpha_rad: float,
+             ref: Reference | None = None, hold_tilt: bool = False) -> ControlTick:
+        """One tick at mission time ``t_s``. ``ref`` overrides the mission's reference (a
+        failsafe landing); ``hold_tilt`` freezes the tilt command at the measured tilt."""
+        mission = self.mission
+        if ref is None:
+            ref = mission.reference(t_s)
+        alpha_ref = ref.alpha_rad if self.tilt_override_rad is None else self.tilt_override_rad
+        demand = None
+        margin = 0.0
+        if hold_tilt:
+            alpha_ref = alpha_rad
+        elif alpha_ref is None:
+            auto = mission.auto_profile(t_s)
+            margin = auto.margin_n if auto is not None else 0.0
+            if t_s >= self._next_auto_s:
+                self._next_auto_s = t_s + AUTO_UPDATE_PERIOD_S
+                demand = mission.lateral_demand_n(
+                    t_s, auto.horizon_s if auto is not None else 0.0, self.params.mass_kg,
+                    self.params.gravity_m_s2)
+        alpha_cmd = self.planner.step(t_s, alpha_ref, demand, margin)
+        cmd = self.controller.step(t_s, state, ref, alpha_rad)
+        return ControlTick(ref, math.nan if alpha_ref is None else alpha_ref, alpha_cmd, cmd)
+
+    def force_efficiency(self, alpha_rad: float, thrusts_n: tuple[float, ...]) -> float:
+        """eta_f of the given thrusts at the measured tilt (axes cached per alpha)."""
+        if alpha_rad != self._axes_alpha:
+            self._axes = [(float(a[0]), float(a[1]), float(a[2]))
+                          for a in self.model.thrust_axes(alpha_rad)]
+            self._axes_alpha = alpha_rad
+        fx = fy = fz = tot = 0.0
+        for f, a in zip(thrusts_n, self._axes, strict=True):
+            fx += f * a[0]
+            fy += f * a[1]
+            fz += f * a[2]
+            tot += f
+        return math.sqrt(fx * fx + fy * fy + fz * fz) / tot if tot > 0.0 else 1.0
+
+
+@dataclass(frozen=True)
+class LandHere:
+    """A failsafe landing: from ``start_pos_w_m`` at ``t0_s`` straight down to ``ground_z_m``
+    (O_B height at rest) at ``descent_m_s``, with a cubic ease-in over the first second; the
+    heading is kept and a level attitude requested. Hands the tilt to the caller (``None``)."""
+
+    t0_s: float
+    start_pos_w_m: Vec3
+    q_yaw: Quat
+    ground_z_m: float
+    descent_m_s: float = 0.3
+    sink_m: float = 0.05  # aim slightly below the gear so the vehicle settles
+
+    def reference(self, t_s: float, alpha_rad: float) -> Reference:
+        x, y, z0 = self.start_pos_w_m
+        target = self.ground_z_m - self.sink_m
+        drop = max(0.0, z0 - target)
+        tau = max(0.0, t_s - self.t0_s)
+        ease_s = 1.0  # descent speed follows a smoothstep over the first second
+        v = self.descent_m_s
+        if tau < ease_s:
+            u = tau / ease_s
+            dz = v * ease_s * (u**3 - 0.5 * u**4)
+            vz = v * (3.0 * u**2 - 2.0 * u**3)
+            az = v * (6.0 * u - 6.0 * u**2) / ease_s
+        else:
+            dz = v * ease_s / 2.0 + v * (tau - ease_s)
+            vz, az = v, 0.0
+        if dz >= drop:
+            dz, vz, az = drop, 0.0, 0.0
+        return Reference(t_s, (x, y, z0 - dz), (0.0, 0.0, -vz), (0.0, 0.0, -az), self.q_yaw,
+                         (0.0, 0.0, 0.0), alpha_rad, segment=-1, measured=False)
