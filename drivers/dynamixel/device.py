@@ -14,11 +14,24 @@ Per service cycle (``rate_hz``, 50 Hz by default): one WRITE of Goal Position (o
 rate-limited goal moved) and one READ of the 11-byte block 36..46 (position, speed, load,
 voltage, temperature, Registered, Moving); GroupBulkRead is broken for P1 in SDK 4.1.0.
 
-Why a separate process: the SDK waits for every reply by busy-polling ``read()`` for up to its
-~34 ms timeout, holding the GIL. The servo is therefore served by its own process (or, for
-comparison, a thread) and the control loop only touches a shared-memory mailbox:
-:meth:`TiltServo.set_tilt` stores a goal, :meth:`TiltServo.latest` copies the newest
-:class:`ServoState` (seqlock; never waits).
+Why a separate process: the SDK waits for every reply by polling ``read()`` for up to its
+~34 ms timeout, burning a core and taking the GIL over and over. The servo is therefore served by
+its own process (or, for comparison, a thread) and the control loop only touches a
+shared-memory mailbox: :meth:`TiltServo.set_tilt` stores a goal, :meth:`TiltServo.latest`
+copies the newest :class:`ServoState` (seqlock; never waits). In that process the serial port
+gets a 1 ms read timeout, so the SDK's polling loop blocks in ``select()`` instead of spinning.
+
+Configuration on every (re)connect: model 29 (an MX-28 with P2 firmware reports 30: refused),
+firmware >= ``min_firmware``, SRL 2, Return Delay 0, multi-turn (CW = CCW limit = 4095), Moving
+Speed for ``max_tilt_rate_deg_s`` at the tilt, goal = present, torque on, LED on. The LED is a
+power-up marker: found off after a reconnect or a silent spell, the servo was power-cycled and
+its turn count (the zero) is gone -> ``HOMING_REQUIRED`` until :meth:`TiltServo.home`.
+
+Faults: a failed transaction is published at once (``NO_REPLY``, ``CORRUPT_REPLY``,
+``DISCONNECTED``): within one period plus the SDK timeout (~54 ms at 50 Hz); independently,
+:meth:`TiltServo.latest` turns a measurement older than ``stale_after_s`` (100 ms) into
+``STALE``. The last measured tilt is kept through faults. Status error bits become
+``SERVO_ERROR`` with ``ServoState.errors`` (an :class:`ErrorBit` flag set).
 
 SDK traps handled here: a late reply taken as the answer to the next request (after any failed
 transaction the worker waits ``resync_quiet_s`` and flushes the input; READ replies of the wrong
