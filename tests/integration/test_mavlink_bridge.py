@@ -1,0 +1,448 @@
+"""The MAVLink bridge against a second, independent pymavlink endpoint (mavutil) on loopback.
+
+The bridge is driven in lockstep (``bridge.step(t)`` with a simulated session time), so rates
+are checked in simulated time and nothing depends on the machine's load. Waiting on the peer
+uses generous deadlines; a "nothing happened" check is closed by a harmless signed command
+whose ACK proves every earlier datagram was processed (UDP on loopback keeps the order of one
+socket's datagrams and the bridge handles them in order).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import threading
+import time
+from collections import Counter, deque
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+os.environ["MAVLINK20"] = "1"  # before mavutil is imported (the v1 dialect would lose signing)
+import itertools
+
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import common as mavlink2
+
+from drivers.mavlink import MavlinkBridge, MavlinkConfig
+from drivers.mavlink.frames import q_from_euler
+from drivers.mavlink.signing import signing_timestamp_now
+from groundstation.operator import (
+    Arm,
+    CommandResult,
+    Disarm,
+    EmergencyStop,
+    FlightPhase,
+    Land,
+    PoseSetpoint,
+    RuleBasedCommandSink,
+    SensorHealth,
+    SetParam,
+    SetTilt,
+    Takeoff,
+    VehicleTelemetry,
+    operator_params,
+)
+
+mavutil.set_dialect("common")
+M = mavlink2
+KEY = hashlib.sha256(b"labpass").digest()
+WRONG_KEY = hashlib.sha256(b"guess").digest()
+TIMEOUT_S = 30.0
+ROLL, PITCH, YAW = math.radians(5.0), math.radians(-3.0), math.radians(30.0)
+RATES = dict(heartbeat_hz=1.0, sys_status_hz=2.0, attitude_hz=50.0, attitude_quaternion_hz=25.0,
+             local_position_hz=20.0, odometry_hz=10.0, actuator_output_hz=5.0)
+PARAMS = operator_params(kp_pos=(10.0, 10.0, 20.0), kv_pos=(5.0, 5.0, 8.0),
+                         ki_pos=(1.0, 1.0, 2.0), kr_att=(3.0, 3.0, 1.0), kw_att=(0.5, 0.5, 0.2),
+                         max_tilt_deg=35.0, max_tilt_rate_deg_s=10.0)
+
+
+def hover(t_s: float, phase: FlightPhase = FlightPhase.PREFLIGHT) -> VehicleTelemetry:
+    """A scripted hover: fixed attitude, 5 cm / 0.5 Hz sway along x at 1 m height."""
+    x = 0.05 * math.sin(2 * math.pi * 0.5 * t_s)
+    vx = 0.05 * 2 * math.pi * 0.5 * math.cos(2 * math.pi * 0.5 * t_s)
+    return VehicleTelemetry(
+        t_s=t_s, phase=phase, armed=phase.armed, pos_w_m=(x, 0.2, 1.0), vel_w_m_s=(vx, 0.0, 0.0),
+        q_wb=q_from_euler(ROLL, PITCH, YAW), omega_b_rad_s=(0.0, 0.0, 0.1),
+        rotor_speeds_hz=(55.0, 56.0, 57.0, 58.0, 59.0, 60.0), tilt_rad=math.radians(15.0),
+        battery_v=15.2, health=SensorHealth(preflight_ok=True))
+
+
+class Rig:
+    """A bridge (vehicle side, udpout) and a mavutil GCS (udpin) on loopback, in lockstep."""
+
+    def __init__(self, key: bytes | None = None, peer_key: bytes | None = None,
+                 phase: FlightPhase = FlightPhase.PREFLIGHT) -> None:
+        self.gcs = mavutil.mavlink_connection("udpin:127.0.0.1:0", source_system=255,
+                                              source_component=190)
+        if peer_key is not None:
+            self.gcs.setup_signing(peer_key, sign_outgoing=True)
+        port = self.gcs.port.getsockname()[1]
+        self.t = 0.0
+        self.inbox: dict[str, deque[Any]] = {}
+        self.sink = RuleBasedCommandSink(phase, on_change=lambda ph: self.bridge.publish(
+            hover(self.t, ph)))
+        cfg = MavlinkConfig(uri=f"udpout:127.0.0.1:{port}", signing=key is not None, **RATES)
+        self.bridge = MavlinkBridge(cfg, self.sink, params=PARAMS, key=key)
+        self.bridge.publish(hover(0.0, phase))
+        self.bridge.step(0.0)
+        # the GCS learns the vehicle's address from its first datagram
+        assert self.recv("HEARTBEAT") is not None
+        self.vehicle_addr = ("127.0.0.1", self.bridge.local_address[1])
+
+    def _pull(self, timeout_s: float) -> bool:
+        if timeout_s > 0:
+            msg = self.gcs.recv_match(blocking=True, timeout=timeout_s)
+        else:
+            msg = self.gcs.recv_match(blocking=False)
+        if msg is None or msg.get_type() == "BAD_DATA":
+            return False
+        self.inbox.setdefault(msg.get_type(), deque()).append(msg)
+        return True
+
+    def recv(self, kind: str) -> Any:
+        """The oldest unread ``kind`` message; simulated time moves on 10 ms per idle poll."""
+        deadline = time.monotonic() + TIMEOUT_S
+        while time.monotonic() < deadline:
+            if self.inbox.get(kind):
+                return self.inbox[kind].popleft()
+            # in lockstep every reply is sent from this thread: what is not there yet will
+            # only come with a later step
+            if not self._pull(0.0):
+                self.t += 0.01
+                self.bridge.publish(hover(self.t, self.sink.phase))
+                self.bridge.step(self.t)
+        raise AssertionError(f"no {kind} within {TIMEOUT_S} s")
+
+    def drain(self, n: int) -> dict[str, list[Any]]:
+        """Everything received so far plus ``n`` more messages, by type (time stands still)."""
+        for _ in range(n):
+            assert self._pull(TIMEOUT_S)
+        out = {k: list(v) for k, v in self.inbox.items()}
+        self.inbox.clear()
+        return out
+
+    def serve_until_ack(self, command: int) -> Any:
+        deadline = time.monotonic() + TIMEOUT_S
+        while time.monotonic() < deadline:
+            acks = self.inbox.get("COMMAND_ACK")
+            while acks:
+                ack = acks.popleft()
+                if ack.command == command:
+                    return ack
+            self.bridge.step(self.t, wait_s=0.05)
+            while self._pull(0.0):
+                pass
+        raise AssertionError(f"no COMMAND_ACK for {command}")
+
+    def command(self, command: int, *params: float) -> int:
+        p = [*params, *[0.0] * (7 - len(params))]
+        self.gcs.mav.command_long_send(1, 1, command, 0, *p)
+        return int(self.serve_until_ack(command).result)
+
+    def send_raw(self, frame: bytes) -> None:
+        self.gcs.port.sendto(frame, self.vehicle_addr)
+
+    def sync(self) -> None:
+        """Returns once every datagram sent before it has been handled by the bridge."""
+        self.command(M.MAV_CMD_REQUEST_MESSAGE, M.MAVLINK_MSG_ID_HEARTBEAT)
+
+    def close(self) -> None:
+        self.bridge.close()
+        self.gcs.close()
+
+
+@pytest.fixture
+def rig() -> Iterator[Rig]:
+    r = Rig()
+    yield r
+    r.close()
+
+
+def _frame(key: bytes | None, msg: Any, timestamp: int | None = None, sysid: int = 255) -> bytes:
+    """One frame encoded by a plain pymavlink encoder, signed with ``key`` if given."""
+    out: list[bytes] = []
+
+    class _W:
+        def write(self, b: bytes) -> None:
+            out.append(bytes(b))
+
+    mav = M.MAVLink(_W(), srcSystem=sysid, srcComponent=190)
+    if key is not None:
+        mav.signing.secret_key = key
+        mav.signing.sign_outgoing = True
+        mav.signing.link_id = 7
+        mav.signing.timestamp = signing_timestamp_now() if timestamp is None else timestamp
+    mav.send(msg)
+    return out[0]
+
+
+def _arm_msg(arm: bool = True) -> Any:
+    return M.MAVLink_command_long_message(1, 1, M.MAV_CMD_COMPONENT_ARM_DISARM, 0,
+                                          1.0 if arm else 0.0, 0, 0, 0, 0, 0, 0)
+
+
+def test_that_a_scripted_hover_arrives_at_the_configured_rates_with_correct_values(
+        rig: Rig) -> None:
+    # Fixture: 2 s of 500 Hz snapshots in lockstep (the first step at t = 0 already ran)
+    dt, n = 0.002, 1000
+    # Test
+    for k in range(1, n):
+        rig.t = k * dt
+        rig.bridge.publish(hover(rig.t))
+        rig.bridge.step(rig.t)
+    sent = rig.bridge.stats().messages_out
+    unread = sum(len(v) for v in rig.inbox.values())
+    # the fixture has read the first HEARTBEAT, and perhaps more into the inbox
+    got = rig.drain(sum(sent.values()) - 1 - unread)
+    # Assert: counts over [0, 2 s) at each configured rate
+    expected = {"HEARTBEAT": 1.0, "SYS_STATUS": 2.0, "ATTITUDE": 50.0,
+                "ATTITUDE_QUATERNION": 25.0, "LOCAL_POSITION_NED": 20.0, "ODOMETRY": 10.0,
+                "ACTUATOR_OUTPUT_STATUS": 5.0}
+    for kind, hz in expected.items():
+        received = len(got.get(kind, [])) + (1 if kind == "HEARTBEAT" else 0)
+        assert abs(received - hz * 2.0) <= 1, (kind, received)
+    stamps = [m.time_boot_ms for m in got["ATTITUDE"]]
+    assert all(abs((b - a) - 20) <= 2 for a, b in itertools.pairwise(stamps))
+    # values: attitude in NED, position NED following the scripted sway
+    for att in got["ATTITUDE"]:
+        assert att.roll == pytest.approx(ROLL, abs=1e-6)
+        assert att.pitch == pytest.approx(-PITCH, abs=1e-6)
+        assert att.yaw == pytest.approx(-YAW, abs=1e-6)
+    for lp in got["LOCAL_POSITION_NED"]:
+        t = lp.time_boot_ms / 1000.0
+        assert lp.x == pytest.approx(0.05 * math.sin(math.pi * t), abs=2e-4)
+        assert (lp.y, lp.z) == pytest.approx((-0.2, -1.0), abs=1e-6)
+    for ao in got["ACTUATOR_OUTPUT_STATUS"]:
+        assert ao.actuator[:7] == pytest.approx([55, 56, 57, 58, 59, 60, math.radians(15)],
+                                                abs=1e-6)
+    assert got["SYS_STATUS"][0].voltage_battery == 15200
+    assert rig.bridge.stats().signing is None
+
+
+def test_that_arm_takeoff_land_disarm_and_emergency_stop_are_acked_by_state(rig: Rig) -> None:
+    R = CommandResult
+    # Test / Assert: each command answered with the result of the state rules
+    assert rig.command(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 1.0) == R.TEMPORARILY_REJECTED
+    assert rig.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == R.ACCEPTED
+    hb = rig.recv("HEARTBEAT")
+    assert hb.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED and hb.custom_mode == FlightPhase.ARMED
+    assert rig.recv("STATUSTEXT").text == "PREFLIGHT -> ARMED"
+    assert rig.command(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 1.0) == R.ACCEPTED
+    assert rig.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 0) == R.DENIED  # disarm in flight
+    assert rig.command(M.MAV_CMD_USER_1, 20.0) == R.ACCEPTED  # tilt 20 deg
+    assert rig.command(M.MAV_CMD_USER_1, 50.0) == R.DENIED  # beyond 35 deg
+    assert rig.command(M.MAV_CMD_NAV_LAND) == R.ACCEPTED
+    rig.sink.set_phase(FlightPhase.DISARMED)
+    assert rig.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 0) == R.ACCEPTED
+    assert rig.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196) == R.ACCEPTED  # force: stop
+    assert rig.sink.accepted == [Arm(), Takeoff(1.0), SetTilt(math.radians(20.0)), Land(),
+                                 Disarm(), EmergencyStop("force disarm")]
+    assert rig.recv("HEARTBEAT").system_status == M.MAV_STATE_EMERGENCY
+    assert rig.command(M.MAV_CMD_DO_FLIGHTTERMINATION, 1) == R.ACCEPTED
+    assert rig.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == R.DENIED  # no re-arm after a cut
+
+
+def test_that_signed_commands_are_accepted_and_unsigned_wrong_key_and_replays_rejected() -> None:
+    # Fixture: signing on both sides, the GCS with mavutil's own signing
+    rig = Rig(key=KEY, peer_key=KEY)
+    try:
+        hb = rig.recv("HEARTBEAT")
+        assert hb._signed and rig.gcs.mav.signing.goodsig_count >= 2  # telemetry is signed
+        # Test: unsigned and wrong-key arms, then a sync
+        rig.send_raw(_frame(None, _arm_msg()))
+        rig.send_raw(_frame(WRONG_KEY, _arm_msg()))
+        rig.sync()
+        # Assert: nothing was armed, both rejections counted
+        assert rig.sink.phase is FlightPhase.PREFLIGHT and rig.sink.submissions == []
+        stats = rig.bridge.stats().signing
+        assert stats is not None
+        assert (stats.unsigned_rejected, stats.bad_signature) == (1, 1)
+        # Test: a correctly signed arm from a second signer, then its byte-exact replay
+        good = _frame(KEY, _arm_msg(), sysid=254)
+        rig.send_raw(good)
+        assert rig.serve_until_ack(M.MAV_CMD_COMPONENT_ARM_DISARM).result == CommandResult.ACCEPTED
+        rig.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 0)  # disarm through mavutil's signing
+        rig.send_raw(good)
+        rig.sync()
+        # Assert: one arm, one disarm, the replay dropped and counted
+        assert [c for c, _ in rig.sink.submissions] == [Arm(), Disarm()]
+        stats = rig.bridge.stats().signing
+        assert stats is not None
+        assert (stats.replayed, stats.unsigned_rejected, stats.bad_signature) == (1, 1, 1)
+        assert stats.good >= 4
+        # an unsigned RADIO_STATUS is allow-listed (radios cannot sign) but commands nothing
+        rig.send_raw(_frame(None, M.MAVLink_radio_status_message(200, 190, 100, 10, 8, 0, 0)))
+        rig.sync()
+        stats = rig.bridge.stats().signing
+        assert stats is not None and stats.unsigned_allowed == 1
+    finally:
+        rig.close()
+
+
+def test_that_a_gcs_with_the_wrong_key_sees_nothing_it_can_verify_and_commands_nothing() -> None:
+    rig = Rig(key=KEY, peer_key=KEY)
+    try:
+        bad = mavutil.mavlink_connection("udpin:127.0.0.1:0", source_system=250)
+        try:
+            bad.setup_signing(WRONG_KEY, sign_outgoing=True)
+            bad.port.sendto(_frame(WRONG_KEY, _arm_msg(), sysid=250), rig.vehicle_addr)
+            rig.sync()
+        finally:
+            bad.close()
+        assert rig.sink.submissions == []
+        assert rig.bridge.stats().signing.bad_signature == 1  # type: ignore[union-attr]
+    finally:
+        rig.close()
+
+
+def test_that_parameters_can_be_listed_read_and_set_only_within_their_range(rig: Rig) -> None:
+    # Test: list
+    rig.gcs.mav.param_request_list_send(1, 1)
+    values = {}
+    while len(values) < len(PARAMS):
+        pv = rig.recv("PARAM_VALUE")
+        values[pv.param_id] = (pv.param_value, pv.param_index, pv.param_count)
+    # Assert
+    assert set(values) == {p.name for p in PARAMS}
+    assert values["KP_POS_Z"][0] == pytest.approx(20.0)
+    assert all(count == len(PARAMS) for _, _, count in values.values())
+    # Test: set within range, set out of range, read by index
+    rig.gcs.mav.param_set_send(1, 1, b"KP_POS_Z", 25.0, M.MAV_PARAM_TYPE_REAL32)
+    assert rig.recv("PARAM_VALUE").param_value == pytest.approx(25.0)
+    rig.gcs.mav.param_set_send(1, 1, b"TILT_MAX_DEG", 40.0, M.MAV_PARAM_TYPE_REAL32)
+    echo = rig.recv("PARAM_VALUE")
+    assert (echo.param_id, echo.param_value) == ("TILT_MAX_DEG", pytest.approx(35.0))
+    rig.gcs.mav.param_request_read_send(1, 1, b"", values["KP_POS_Z"][1])
+    assert rig.recv("PARAM_VALUE").param_value == pytest.approx(25.0)
+    # Assert: only the valid write reached the sink
+    assert rig.sink.accepted == [SetParam("KP_POS_Z", 25.0)]
+    assert rig.bridge.param_value("TILT_MAX_DEG") == 35.0
+
+
+def test_that_what_mavproxy_sends_to_any_vehicle_is_answered_or_ignored(rig: Rig) -> None:
+    # FTP: parameter download over FTP is refused, so the GCS falls back to PARAM_REQUEST_LIST
+    payload = bytearray(251)
+    payload[0:2] = (5).to_bytes(2, "little")
+    payload[3] = 4  # OpenFileRO
+    name = b"@PARAM/param.pck"
+    payload[4] = len(name)
+    payload[12:12 + len(name)] = name
+    rig.gcs.mav.file_transfer_protocol_send(0, 1, 1, list(payload))
+    nak = bytes(rig.recv("FILE_TRANSFER_PROTOCOL").payload)
+    assert (int.from_bytes(nak[0:2], "little"), nak[3], nak[5], nak[12]) == (6, 129, 4, 10)
+    rig.gcs.mav.mission_request_list_send(1, 1, 0)
+    assert rig.recv("MISSION_COUNT").count == 0
+    assert rig.command(M.MAV_CMD_GET_HOME_POSITION) == CommandResult.UNSUPPORTED
+    rig.gcs.mav.request_data_stream_send(1, 1, 0, 4, 1)
+    assert rig.command(M.MAV_CMD_REQUEST_MESSAGE,
+                       M.MAVLINK_MSG_ID_AUTOPILOT_VERSION) == CommandResult.ACCEPTED
+    caps = rig.recv("AUTOPILOT_VERSION").capabilities
+    assert caps & M.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    rig.gcs.mav.timesync_send(0, 123456)
+    assert rig.recv("TIMESYNC").ts1 == 123456
+    # a GCS slows ATTITUDE down to 10 Hz: 1 s of lockstep then brings 10 of them
+    assert rig.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, M.MAVLINK_MSG_ID_ATTITUDE,
+                       100_000) == CommandResult.ACCEPTED
+    before = rig.bridge.stats().messages_out["ATTITUDE"]
+    for k in range(1, 501):
+        rig.bridge.step(k * 0.002 + 0.001)
+    assert abs(rig.bridge.stats().messages_out["ATTITUDE"] - before - 10) <= 1
+    # a heartbeat from the GCS is tracked for link-loss detection
+    rig.gcs.mav.heartbeat_send(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+    rig.sync()
+    assert rig.bridge.gcs_link_ok(rig.t)
+    assert rig.bridge.stats().ignored.get("REQUEST_DATA_STREAM") == 1
+
+
+def test_that_offboard_targets_reach_the_sink_in_world_coordinates_only_in_mission() -> None:
+    rig = Rig(phase=FlightPhase.TAKEOFF)
+    try:
+        mask = 0b1001_1111_1000  # position and yaw given; velocity, accel, yaw rate ignored
+        rig.gcs.mav.set_position_target_local_ned_send(0, 1, 1, M.MAV_FRAME_LOCAL_NED, mask,
+                                                       1.0, 0.5, -1.2, 0, 0, 0, 0, 0, 0, 0.3, 0)
+        rig.sync()
+        rig.sink.set_phase(FlightPhase.MISSION)
+        rig.gcs.mav.set_position_target_local_ned_send(0, 1, 1, M.MAV_FRAME_LOCAL_NED, mask,
+                                                       1.0, 0.5, -1.2, 0, 0, 0, 0, 0, 0, 0.3, 0)
+        echo = rig.recv("POSITION_TARGET_LOCAL_NED")
+        assert (echo.x, echo.y, echo.z) == pytest.approx((1.0, 0.5, -1.2))
+        q_ned = q_from_euler(0.1, 0.0, 0.0)
+        rig.gcs.mav.set_attitude_target_send(0, 1, 1, 0b0000_0111, list(q_ned), 0, 0, 0, 0.5)
+        rig.sync()
+        (_sp0, r0), (sp1, r1), (sp2, r2) = rig.sink.submissions[:3]
+        assert r0 is CommandResult.TEMPORARILY_REJECTED and r1 is CommandResult.ACCEPTED
+        assert isinstance(sp1, PoseSetpoint) and sp1.pos_w_m is not None
+        assert sp1.pos_w_m == pytest.approx((1.0, -0.5, 1.2))
+        assert sp1.yaw_rad == pytest.approx(-0.3)
+        assert isinstance(sp2, PoseSetpoint) and sp2.q_wb is not None
+        assert r2 is CommandResult.ACCEPTED
+        assert sp2.q_wb == pytest.approx(q_ned, abs=1e-6)  # roll only: same in both frames
+    finally:
+        rig.close()
+
+
+def test_that_mocap_poses_over_mavlink_become_world_frame_pose_samples(rig: Rig) -> None:
+    assert rig.bridge.mocap.latest() is None
+    q_ned = q_from_euler(0.0, 0.0, 0.5)  # yaw 0.5 rad about NED down
+    rig.gcs.mav.att_pos_mocap_send(123, list(q_ned), 1.0, 2.0, -1.5)
+    rig.sync()
+    s = rig.bridge.mocap.latest()
+    assert s is not None and s.valid and s.body_name == "ATT_POS_MOCAP"
+    assert s.pos_w_m == pytest.approx((1.0, -2.0, 1.5))
+    w, x, y, z = s.q_wb
+    assert (x, y) == pytest.approx((0.0, 0.0), abs=1e-9)
+    assert 2 * math.atan2(z, w) == pytest.approx(-0.5, abs=1e-6)  # yaw about world z up
+    rig.gcs.mav.vision_position_estimate_send(456, 0.1, 0.2, -0.3, 0.0, 0.0, 0.0)
+    rig.sync()
+    s2 = rig.bridge.mocap.latest()
+    assert s2 is not None and s2.pos_w_m == pytest.approx((0.1, -0.2, 0.3))
+    assert s2.q_wb == pytest.approx((1.0, 0.0, 0.0, 0.0))
+    assert rig.bridge.mocap.stats().frames_received == 2
+
+
+def test_that_the_service_thread_streams_on_the_wall_clock_while_another_thread_publishes(
+        ) -> None:
+    # Fixture: the vehicle listens (udpin); the GCS sends first (udpout)
+    probe = mavutil.mavlink_connection("udpin:127.0.0.1:0")
+    port = probe.port.getsockname()[1]
+    probe.close()  # a free port number for the vehicle to bind
+    sink = RuleBasedCommandSink()
+    bridge = MavlinkBridge(MavlinkConfig(uri=f"udpin:127.0.0.1:{port}", attitude_hz=100.0),
+                           sink)
+    gcs = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=255)
+    stop = threading.Event()
+
+    def publisher() -> None:
+        k = 0
+        while not stop.is_set():
+            bridge.publish(hover(k * 0.01))
+            k += 1
+            stop.wait(0.01)
+
+    pub = threading.Thread(target=publisher, daemon=True)
+    try:
+        bridge.start()
+        pub.start()
+        gcs.mav.heartbeat_send(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        # Test: the vehicle answers the address the GCS spoke from
+        atts = []
+        deadline = time.monotonic() + TIMEOUT_S
+        while len(atts) < 20 and time.monotonic() < deadline:
+            msg = gcs.recv_match(type="ATTITUDE", blocking=True, timeout=1.0)
+            if msg is not None:
+                atts.append(msg)
+        gcs.mav.command_long_send(1, 1, M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+        ack = gcs.recv_match(type="COMMAND_ACK", blocking=True, timeout=TIMEOUT_S)
+    finally:
+        stop.set()
+        pub.join()
+        bridge.close()
+        gcs.close()
+    # Assert
+    assert len(atts) == 20 and all(a.roll == pytest.approx(ROLL, abs=1e-6) for a in atts)
+    assert ack is not None and ack.result == CommandResult.ACCEPTED
+    assert sink.accepted == [Arm()]
+    assert Counter(type(c).__name__ for c, _ in sink.submissions) == {"Arm": 1}
