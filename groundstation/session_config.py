@@ -101,12 +101,12 @@ def load_session(name_or_path: str | Path) -> SessionConfig:
 
     path = find_config("sessions", name_or_path)
     session = load_config(path, SessionConfig, schema=SESSION_SCHEMA, versions=(1,))
-    load_vehicle(_relative(path, session.vehicle))
-    load_mission(_relative(path, session.mission))
+    load_vehicle(resolve_reference(path, session.vehicle))
+    load_mission(resolve_reference(path, session.mission))
     return session
 
 
-def _relative(session_path: Path, ref: str) -> str | Path:
+def resolve_reference(session_path: Path, ref: str) -> str | Path:
     """A file reference in a session is relative to the session file; a bare name is shipped."""
     if ref.endswith((".yaml", ".yml")) and not Path(ref).is_absolute():
         return session_path.parent / ref

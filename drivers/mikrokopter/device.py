@@ -578,6 +578,12 @@ class FlightCtrl:
                     if m is None or m.state == MotorState.OFF:
                         self._write(framing_tk3.encode_frame(mkm.StartMotors(i + 1).encode()))
 
+    def request_motor_start(self) -> None:
+        """Send ``g`` to every motor and return at once (the 500 Hz loop keeps ticking and
+        watches :meth:`motors`; :meth:`start_motors` is the blocking variant for tools)."""
+        for motor_id in range(1, self.config.n_motors + 1):
+            self._write(framing_tk3.encode_frame(mkm.StartMotors(motor_id).encode()))
+
     @staticmethod
     def _describe(snap: MotorsSnapshot) -> str:
         return ", ".join(f"{i + 1}: {m.state.value if m else 'no data'}"

@@ -1,0 +1,137 @@
+"""``fasthex fly [SESSION]``: one flight session on real or emulated hardware.
+
+Preflight checks, arm, take off, fly the mission, land, disarm; failsafes on the way. Ctrl-C
+lands, a second Ctrl-C cuts the motors. The flight record is written as the flight goes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+NAME = "fly"
+HELP = "fly a session (default: the paper's Experiment 1 on the emulated vehicle)"
+DEFAULT_SESSION = "exp1-emulated"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("session", nargs="?", default=DEFAULT_SESSION,
+                        help=f"session name or YAML file (default {DEFAULT_SESSION})")
+    parser.add_argument("--clock", choices=("realtime", "lockstep"), default=None,
+                        help="emulated backend: override the session's clock")
+    parser.add_argument("--seed", type=int, default=None, help="emulated backend: seed")
+    parser.add_argument("--record", default=None, metavar="PATH",
+                        help="flight-record path (default flights/<session>-<time>.fhr)")
+    parser.add_argument("--json", action="store_true",
+                        help="print the exit summary as one JSON object")
+    parser.add_argument("--quiet", action="store_true", help="no live status or event lines")
+    parser.add_argument("--realtime-settings", action="store_true",
+                        help="try CPU pinning, SCHED_FIFO and a frozen GC (realtime only)")
+    parser.add_argument("--corrupt-prob", type=float, default=0.0,
+                        help="emulated backend: byte corruption on the Flight-Ctrl link")
+
+
+def run(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from config import find_config
+    from controller.missions import Mission
+    from groundstation.cli import UserError
+    from groundstation.configs import load_mission, load_vehicle
+    from groundstation.session import FlightSession, SessionError, summary_lines
+    from groundstation.session_config import EmulatedBackend, load_session, resolve_reference
+
+    path = find_config("sessions", args.session)
+    cfg = load_session(path)
+    backend = cfg.backend
+    if isinstance(backend, EmulatedBackend):
+        if args.clock:
+            backend = replace(backend, clock=args.clock)
+        if args.seed is not None:
+            backend = replace(backend, seed=args.seed)
+        cfg = replace(cfg, backend=backend)
+    elif args.clock or args.seed is not None:
+        raise UserError("--clock and --seed apply to emulated sessions only")
+    params = load_vehicle(resolve_reference(path, cfg.vehicle))
+    mission = Mission(load_mission(resolve_reference(path, cfg.mission)))
+    record = Path(args.record) if args.record else Path(
+        "flights") / f"{cfg.name}-{time.strftime('%Y%m%d-%H%M%S')}.fhr"
+    record.parent.mkdir(parents=True, exist_ok=True)
+    session = FlightSession(cfg, params, mission, record_path=record,
+                            echo_events=not args.quiet and not args.json,
+                            corrupt_prob=args.corrupt_prob,
+                            realtime_settings=args.realtime_settings)
+    stop_status = threading.Event()
+
+    def on_sigint(signum: int, frame: Any) -> None:
+        if session.loop is not None:
+            session.loop.requests.append("stop")
+
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    status: threading.Thread | None = None
+    if not args.quiet and not args.json and sys.stderr.isatty():
+        def show() -> None:
+            while not stop_status.wait(0.2):
+                if session.loop is not None and session.loop.status:
+                    print("\r" + session.loop.status, end="", file=sys.stderr, flush=True)
+        status = threading.Thread(target=show, daemon=True)
+        status.start()
+    try:
+        outcome = session.run()
+    except SessionError as exc:
+        raise UserError(str(exc)) from None
+    finally:
+        stop_status.set()
+        signal.signal(signal.SIGINT, previous)
+        if status is not None:
+            print(file=sys.stderr)
+    summary = flight_summary(outcome, params, cfg.name)
+    if args.json:
+        json.dump(summary, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        print("\n".join(summary_lines(outcome)))
+        metrics_table(summary)
+    return 0 if summary["end_reason"] in ("touchdown", "mission complete") else 1
+
+
+def flight_summary(outcome: Any, params: Any, session: str) -> dict[str, Any]:
+    from groundstation.metrics import flight_metrics
+    from groundstation.record import read_record
+
+    r = outcome.result
+    t = r.timing
+    out: dict[str, Any] = {
+        "session": session, "end_reason": r.end_reason, "ticks": r.ticks,
+        "flight_time_s": r.flight_time_s, "wall_time_s": outcome.wall_time_s,
+        "deadline_misses": t.deadline_misses, "compute_p50_ms": t.compute_p50_ms,
+        "compute_p99_ms": t.compute_p99_ms, "period_p50_ms": t.period_p50_ms,
+        "jitter_p99_ms": t.jitter_p99_ms, "faults": list(r.faults),
+        "transitions": [f"{tr.t_s:.3f} s {tr.from_state.name} -> {tr.to_state.name}: "
+                        f"{tr.reason}" for tr in r.transitions],
+        "poses_rejected": r.estimator_poses_rejected,
+        "telemetry_dropped": r.telemetry_dropped,
+        "record": str(outcome.record_path),
+        "preflight": [{"check": n, "pass": ok, "value": v} for n, ok, v in outcome.preflight],
+    }
+    rec = read_record(outcome.record_path)
+    if len(rec.rows):
+        out.update(flight_metrics(rec.rows, min_spin_hz=params.rotors.min_spin_hz,
+                                  max_spin_hz=params.rotors.max_spin_hz))
+    return out
+
+
+def metrics_table(summary: dict[str, Any]) -> None:
+    keys = [k for k in summary if k.startswith(("all_", "udt_", "mdt_"))]
+    if not keys:
+        return
+    print("metrics (on the ground station's estimate):")
+    for k in keys:
+        v = summary[k]
+        print(f"  {k:34s} {v:10.3f}" if isinstance(v, float) else f"  {k:34s} {v}")

@@ -1,0 +1,433 @@
+"""The 500 Hz flight loop: one tick per IMU sample, written against small interfaces.
+
+One tick (``architecture.md``, "One tick"):
+
+1. wait for the next IMU sample (with a timeout: a silent link is a fault, not a hang);
+2. take the newest MoCap pose (a lockstep loop first drains the socket itself) and the servo's
+   newest measurement (a lockstep loop runs a synchronous servo cycle every few ticks);
+3. UKF predict with the IMU sample, update with a new pose at its capture time;
+4. flight state machine (health of every input -> continue, land, cut);
+5. mission reference, tilt planner and controller (:class:`controller.pipeline.FlightComputer`)
+   -> six spin rates, written as one ``w`` frame; the tilt command goes to the servo mailbox;
+6. one flight-record row into the telemetry ring (never blocks), the tick's timing recorded.
+
+Time: in ``lockstep`` the tick time is the IMU sample counter times the IMU period (the
+emulated board's simulated clock, so two runs are identical); on hardware and in ``realtime``
+it is the sample time rebuilt by the driver on the host's monotonic clock, the clock the MoCap
+driver stamps capture times with. Nothing in the tick sleeps or blocks on I/O except the
+deliberate wait for the IMU sample (and, in lockstep only, the servo cycle).
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from controller.missions import Mission
+from controller.params import VehicleParams
+from controller.pipeline import ControlTick, FlightComputer, LandHere
+from controller.reference import VehicleState, rot_to_quat
+from drivers.dynamixel.device import ServoHealth as DxlHealth
+from drivers.mikrokopter.device import LinkHealth
+from estimator.types import HealthFlag
+from estimator.ukf import Ukf
+from groundstation.flight import (
+    FlightState,
+    FlightStateMachine,
+    HealthSnapshot,
+    ReferenceSource,
+    SafetyLimits,
+    ServoHealth,
+    Transition,
+)
+from groundstation.interfaces import ImuLink, PoseLink, TiltLink
+from groundstation.timing import LoopTimer, TimingSummary
+
+log = logging.getLogger(__name__)
+
+ZERO6 = (0.0,) * 6
+#: ticks between checks of the IMU link's measured rate (the check costs ~20 us)
+LINK_CHECK_TICKS = 50
+#: ticks between two evaluations of the preflight checks (0.1 s at 500 Hz)
+PREFLIGHT_CHECK_TICKS = 50
+
+
+@dataclass
+class LoopResult:
+    transitions: list[Transition]
+    faults: list[str]
+    timing: TimingSummary
+    ticks: int
+    flight_time_s: float
+    end_reason: str
+    estimator_poses_rejected: int
+    telemetry_dropped: int
+    counters: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass
+class LoopOptions:
+    lockstep: bool
+    imu_rate_hz: float
+    ground_z_m: float
+    servo_sync_every: int = 5  # lockstep: one synchronous servo cycle every N ticks (100 Hz)
+    preflight_timeout_s: float = 15.0
+    min_preflight_s: float = 1.0
+    max_start_offset_m: float = 0.3  # vehicle vs the mission's start position
+    max_flight_s: float = 3600.0
+
+
+class FlightLoop:
+    """Runs one flight session's ticks from the first IMU sample to the end."""
+
+    def __init__(self, *, params: VehicleParams, mission: Mission, imu: ImuLink,
+                 tilt: TiltLink, pose: PoseLink, estimator: Ukf, limits: SafetyLimits,
+                 options: LoopOptions, row_sink: Callable[[tuple[Any, ...]], bool],
+                 event_sink: Callable[[str], None]) -> None:
+        self.params = params
+        self.mission = mission
+        self.imu, self.tilt, self.pose = imu, tilt, pose
+        self.ukf = estimator
+        self.opts = options
+        self.sm = FlightStateMachine(limits)
+        self.computer = FlightComputer(params, mission)
+        self.row_sink = row_sink
+        self.event_sink = event_sink
+        self.period_ns = round(1e9 / options.imu_rate_hz)
+        self.timer = LoopTimer(1.0 / options.imu_rate_hz)
+        #: operator requests from other threads (signal handler, MAVLink): deque is atomic
+        self.requests: collections.deque[Literal["arm", "land", "stop", "cut", "disarm"]] = \
+            collections.deque()
+        #: the current tick's time (ns, loop clock); a lockstep MoCap driver reads it
+        self.now_ns = 0
+        self.preflight_report: list[tuple[str, bool, str]] = []
+        self.status = ""  # one-line live status, refreshed every 50 ticks
+        self._c_f = params.rotors.thrust_coeff_n_per_hz2
+        self._counters = {"telemetry_dropped": 0, "imu_timeouts": 0, "poses_fused": 0,
+                          "servo_sync_failures": 0}
+
+    # -- the loop --------------------------------------------------------------------------
+    def run(self) -> LoopResult:
+        opts = self.opts
+        sm = self.sm
+        t0_s: float | None = None
+        t_s = 0.0
+        last_imu_t_s = 0.0
+        last_frame = -1
+        last_pose_t_s = -math.inf
+        takeoff_t_s: float | None = None
+        land_here: LandHere | None = None
+        alpha = 0.0
+        servo_state = None
+        ground_since_s: float | None = None
+        mocap_start_pos = None
+        tick: ControlTick | None = None
+        force_cmd_b = np.zeros(3)
+        est_state = VehicleState((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0),
+                                 (0.0, 0.0, 0.0))
+        link_ok = True
+        battery_v = math.inf
+        prev_state = sm.state
+        end_reason = "mission complete"
+        n = 0
+        timeout_s = self.sm.limits.imu_timeout_s
+        while True:
+            imu = self.imu.wait_next(timeout_s)
+            start_ns = time.perf_counter_ns()
+            if imu is None:
+                self._counters["imu_timeouts"] += 1
+                age = (t_s - last_imu_t_s) + timeout_s * self._counters["imu_timeouts"]
+                if t0_s is None and self._counters["imu_timeouts"] * timeout_s < 2.0:
+                    continue  # the stream is starting
+                h = self._health(age, False, math.inf, False, ServoHealth.OK, battery_v,
+                                 est_state, False, "mission", False)
+                sm.update(t_s, h)
+                self._act_on_transitions(prev_state, t_s, est_state)
+                prev_state = sm.state
+                if sm.state in (FlightState.DISARMED, FlightState.CUT) or t0_s is None:
+                    end_reason = "IMU stream lost" if t0_s is not None else "no IMU stream"
+                    self.imu.stop_motors()
+                    break
+                continue
+            self._counters["imu_timeouts"] = 0
+            t_ns = imu.seq * self.period_ns if opts.lockstep else imu.t_ns
+            self.now_ns = t_ns
+            if t0_s is None:
+                t0_s = t_ns * 1e-9
+            t_s = t_ns * 1e-9 - t0_s
+            last_imu_t_s = t_s
+
+            # 2. newest pose and servo measurement
+            if opts.lockstep:
+                self.pose.poll()
+            pose = self.pose.latest()
+            if pose is not None and pose.frame_number != last_frame:
+                last_frame = pose.frame_number
+                if pose.valid:
+                    cap_s = pose.t_ns * 1e-9 - t0_s
+                    # 3. (update part) the UKF replays from the capture time
+                    if self.ukf.initialized or self.ukf.t_s == self.ukf.t_s:
+                        self.ukf.update_pose(cap_s, pose.pos_w_m, pose.q_wb)
+                    last_pose_t_s = cap_s
+                    self._counters["poses_fused"] += 1
+                    if mocap_start_pos is None:
+                        mocap_start_pos = pose.pos_w_m
+            if opts.lockstep and n % opts.servo_sync_every == 0:
+                try:
+                    sync = getattr(self.tilt, "sync_cycle", None)
+                    servo_state = sync(1.0) if sync is not None else self.tilt.latest()
+                except Exception as exc:  # a servo fault is a health state, not a crash
+                    self._counters["servo_sync_failures"] += 1
+                    log.debug("servo sync failed: %s", exc)
+                    servo_state = self.tilt.latest()
+            elif not opts.lockstep:
+                servo_state = self.tilt.latest()
+            servo_health = _servo_health(servo_state)
+            if servo_state is not None and math.isfinite(servo_state.tilt_rad):
+                alpha = min(max(servo_state.tilt_rad, 0.0), self.params.tilt.max_tilt_rad)
+
+            # 3. (predict part)
+            self.ukf.predict(t_s, imu.gyro_rad_s, imu.accel_m_s2,
+                             force_cmd_b if tick is not None else None)
+            est = self.ukf.estimate() if self.ukf.initialized else None
+            if est is not None:
+                p, v, q, w = (est.pos_w_m.tolist(), est.vel_w_m_s.tolist(), est.q_wb.tolist(),
+                              est.omega_b_rad_s.tolist())
+                est_state = VehicleState((p[0], p[1], p[2]), (v[0], v[1], v[2]),
+                                         (q[0], q[1], q[2], q[3]), (w[0], w[1], w[2]))
+            estimator_ok = est is not None and not (
+                est.health.flags & (HealthFlag.DIVERGED | HealthFlag.NOT_INITIALIZED))
+
+            if n % LINK_CHECK_TICKS == 0:
+                stats = self.imu.link_stats()
+                link_ok = stats.health not in (LinkHealth.RATE_LOW, LinkHealth.LOST)
+                battery = self.imu.battery()
+                battery_v = battery.voltage_v if battery is not None else math.inf
+
+            # 4. operator requests, preflight and the state machine
+            while self.requests:
+                what = self.requests.popleft()
+                _, why = sm.request(t_s, what)
+                self.event_sink(f"{t_s:.3f} s operator {what}: {why}")
+            if sm.state is FlightState.PREFLIGHT and n % PREFLIGHT_CHECK_TICKS == 0:
+                timed_out = t_s > opts.preflight_timeout_s
+                if (t_s >= opts.min_preflight_s and estimator_ok) or timed_out:
+                    passed = self._preflight(t_s, est_state, servo_state, last_pose_t_s)
+                    if passed or timed_out:
+                        self._report_preflight(t_s)
+                    if passed:
+                        sm.request(t_s, "arm")
+                    elif timed_out:
+                        end_reason = "preflight checks failed"
+                        sm.request(t_s, "stop")
+            tm = t_s - takeoff_t_s if takeoff_t_s is not None else 0.0
+            phase = self._mission_phase(tm)
+            spinning = self.imu.motors().all_spinning if sm.state is FlightState.ARMED else True
+            on_ground = self._on_ground(t_s, est_state, sm.state, land_here, ground_since_s)
+            ground_since_s = (ground_since_s or t_s) if self._near_ground(est_state) else None
+            h = self._health(0.0, link_ok, t_s - last_pose_t_s, estimator_ok, servo_health,
+                             battery_v, est_state, on_ground, phase, spinning)
+            directive = sm.update(t_s, h)
+            if sm.state is not prev_state:
+                if sm.state is FlightState.TAKEOFF:
+                    takeoff_t_s = t_s
+                    tm = 0.0
+                land_here = self._act_on_transitions(prev_state, t_s, est_state) or land_here
+                prev_state = sm.state
+
+            # 5. control
+            spins = ZERO6
+            tick = None
+            if directive.reference is ReferenceSource.MISSION:
+                tick = self.computer.step(tm, est_state, alpha, hold_tilt=directive.hold_tilt)
+            elif directive.reference is ReferenceSource.LAND_HERE and land_here is not None:
+                ref = land_here.reference(t_s, alpha)
+                tick = self.computer.step(tm, est_state, alpha, ref=ref,
+                                          hold_tilt=True)
+            if tick is not None and directive.motors_on:
+                spins = tick.cmd.spin_hz
+                if not directive.hold_tilt:
+                    self.tilt.set_tilt(tick.alpha_cmd_rad)
+            elif directive.motors_on:
+                spins = (self.params.rotors.min_spin_hz,) * 6  # idle while spinning up
+            self.imu.send_rotor_speeds_hz(spins)
+            if tick is not None:
+                force_cmd_b = self._body_force(alpha, tick.cmd.thrusts_n)
+
+            # 6. telemetry
+            self._push_row(t_s, tick, alpha, est_state, spins, servo_state, directive.state)
+            self.timer.record(start_ns, time.perf_counter_ns())
+            n += 1
+            if n % 50 == 0:
+                self.status = self._status_line(t_s, tick, alpha, est_state, battery_v)
+            if sm.finished:
+                self.imu.stop_motors()
+                if sm.transitions and sm.transitions[-1].reason != "touchdown" and \
+                        end_reason == "mission complete":
+                    end_reason = sm.transitions[-1].reason
+                break
+            if t_s > opts.max_flight_s:
+                sm.request(t_s, "stop")
+        return LoopResult(
+            transitions=list(sm.transitions), faults=list(sm.faults),
+            timing=self.timer.summary(), ticks=n,
+            flight_time_s=(t_s - takeoff_t_s) if takeoff_t_s is not None else 0.0,
+            end_reason=end_reason,
+            estimator_poses_rejected=self.ukf.health().poses_rejected,
+            telemetry_dropped=self._counters["telemetry_dropped"],
+            counters=dict(self._counters),
+        )
+
+    # -- pieces ----------------------------------------------------------------------------
+    def _act_on_transitions(self, prev: FlightState, t_s: float, est: VehicleState
+                            ) -> LandHere | None:
+        sm = self.sm
+        land: LandHere | None = None
+        for tr in sm.transitions:
+            if tr.t_s < t_s or tr.from_state is FlightState.DISARMED:
+                continue
+            self.event_sink(f"{tr.t_s:.3f} s {tr.from_state.name} -> {tr.to_state.name}: "
+                            f"{tr.reason}")
+            if tr.to_state is FlightState.ARMED:
+                self.imu.request_motor_start()
+            elif tr.to_state in (FlightState.CUT, FlightState.DISARMED):
+                self.imu.stop_motors()
+            elif tr.to_state is FlightState.LANDING:
+                q = est.q_wb
+                yaw = math.atan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2))
+                land = LandHere(t_s, est.pos_w_m, (math.cos(yaw / 2), 0.0, 0.0,
+                                                   math.sin(yaw / 2)), self.opts.ground_z_m)
+        for fault in sm.faults:
+            if fault.startswith(f"{t_s:.3f} s"):
+                self.event_sink(f"FAULT {fault}")
+        return land
+
+    def _preflight(self, t_s: float, est: VehicleState, servo: Any,
+                   last_pose_t_s: float) -> bool:
+        """The checks of the architecture page; each with its value. True if all pass."""
+        stats = self.imu.link_stats()
+        mstats = self.pose.stats()
+        start = self.mission.start_pos_w_m
+        offset = math.dist(est.pos_w_m, start)
+        imu_rate = stats.imu.measured_rate_hz
+        checks = [
+            ("flight-ctrl streaming IMU >= 80 % of the set rate",
+             imu_rate >= 0.8 * self.opts.imu_rate_hz or self.opts.lockstep,
+             f"{imu_rate:.0f} Hz of {self.opts.imu_rate_hz:.0f} Hz"
+             + (" (lockstep: paced by the loop)" if self.opts.lockstep else "")),
+            ("servo answers, multi-turn, at the commanded angle",
+             servo is not None and servo.ok and abs(servo.tilt_rad - servo.goal_tilt_rad)
+             < math.radians(1.0) if servo is not None and math.isfinite(servo.goal_tilt_rad)
+             else servo is not None and servo.ok,
+             "no reading" if servo is None else
+             f"{servo.health.name}, tilt {math.degrees(servo.tilt_rad):.2f} deg"),
+            ("MoCap sees the body at >= 80 % of its rate",
+             t_s - last_pose_t_s < 0.1 and (mstats.rate_hz >= 80.0 or self.opts.lockstep),
+             f"{mstats.rate_hz:.0f} Hz, newest pose {1e3 * (t_s - last_pose_t_s):.0f} ms old"),
+            ("estimator converged", self.ukf.initialized and self.ukf.health().ok,
+             f"flags {self.ukf.health().flags!r}"),
+            ("vehicle at the mission's start position", offset < self.opts.max_start_offset_m,
+             f"{offset * 1e3:.0f} mm away"),
+            ("configuration validated", True, "session, vehicle and mission files"),
+        ]
+        self.preflight_report = [(name, bool(ok), value) for name, ok, value in checks]
+        return all(ok for _, ok, _ in self.preflight_report)
+
+    def _report_preflight(self, t_s: float) -> None:
+        for name, ok, value in self.preflight_report:
+            self.event_sink(f"{t_s:.3f} s preflight {'PASS' if ok else 'FAIL'}: {name} "
+                            f"({value})")
+
+    def _mission_phase(self, tm: float) -> Literal["takeoff", "mission", "land", "done"]:
+        if tm >= self.mission.duration_s:
+            return "done"
+        interval = self.mission.measured_interval_s()
+        if interval is None:
+            return "mission"
+        start, end = interval
+        if tm < start:
+            return "takeoff"
+        return "mission" if tm < end else "land"
+
+    def _near_ground(self, est: VehicleState) -> bool:
+        return est.pos_w_m[2] < self.opts.ground_z_m + 0.03 and abs(est.vel_w_m_s[2]) < 0.1
+
+    def _on_ground(self, t_s: float, est: VehicleState, state: FlightState,
+                   land_here: LandHere | None, since: float | None) -> bool:
+        if state is not FlightState.LANDING or since is None:
+            return False
+        return t_s - since > 0.5
+
+    def _health(self, imu_age_s: float, link_ok: bool, mocap_age_s: float, estimator_ok: bool,
+                servo: ServoHealth, battery_v: float, est: VehicleState, on_ground: bool,
+                phase: Literal["takeoff", "mission", "land", "done"], spinning: bool
+                ) -> HealthSnapshot:
+        q = est.q_wb
+        r33 = 1.0 - 2.0 * (q[1] * q[1] + q[2] * q[2])
+        return HealthSnapshot(
+            imu_age_s=imu_age_s, imu_rate_ok=link_ok, mocap_age_s=mocap_age_s,
+            estimator_ok=estimator_ok, servo=servo, battery_v=battery_v, pos_w_m=est.pos_w_m,
+            body_tilt_deg=math.degrees(math.acos(max(-1.0, min(1.0, r33)))),
+            on_ground=on_ground, mission_phase=phase, motors_spinning=spinning,
+        )
+
+    def _body_force(self, alpha: float, thrusts: tuple[float, ...]) -> np.ndarray:
+        axes = self.computer.model.thrust_axes(alpha)
+        return np.asarray(thrusts) @ axes
+
+    def _push_row(self, t_s: float, tick: ControlTick | None, alpha: float,
+                  est: VehicleState, spins: tuple[float, ...], servo: Any,
+                  state: FlightState) -> None:
+        nan = math.nan
+        row: tuple[Any, ...]
+        if tick is not None:
+            ref, cmd = tick.ref, tick.cmd
+            row = (t_s, ref.segment, ref.measured and state is FlightState.MISSION,
+                   _mask(cmd.saturated), 0, ref.pos_w_m, ref.vel_w_m_s, ref.acc_w_m_s2,
+                   ref.q_wr, tick.alpha_ref_rad, tick.alpha_cmd_rad, alpha,
+                   rot_to_quat(cmd.r_wd), est.pos_w_m, est.vel_w_m_s, est.q_wb,
+                   est.omega_b_rad_s, est.pos_w_m, est.q_wb, spins, spins, cmd.thrusts_n,
+                   cmd.f_r_w_n, cmd.u_f_b_n, cmd.u_tau_b_n_m, cmd.r_xy_n, cmd.theta_rad,
+                   self.computer.force_efficiency(alpha, cmd.thrusts_n))
+        else:
+            zero3 = (0.0, 0.0, 0.0)
+            row = (t_s, -1, False, 0, 1, est.pos_w_m, zero3, zero3, (1.0, 0.0, 0.0, 0.0),
+                   nan, nan, alpha, (1.0, 0.0, 0.0, 0.0), est.pos_w_m, est.vel_w_m_s,
+                   est.q_wb, est.omega_b_rad_s, est.pos_w_m, est.q_wb, spins, spins,
+                   tuple(self._c_f * s * s for s in spins), zero3, zero3, zero3, 0.0, 0.0, 1.0)
+        if not self.row_sink(row):
+            self._counters["telemetry_dropped"] += 1
+
+    def _status_line(self, t_s: float, tick: ControlTick | None, alpha: float,
+                     est: VehicleState, battery_v: float) -> str:
+        err = math.dist(est.pos_w_m, tick.ref.pos_w_m) * 1e3 if tick is not None else math.nan
+        timing = self.timer.last_compute_s() * 1e3
+        return (f"{self.sm.state.name:9s} t {t_s:7.2f} s  e_p {err:6.1f} mm  alpha "
+                f"{math.degrees(alpha):5.1f} deg  batt {battery_v:5.2f} V  tick "
+                f"{timing:.2f} ms  misses {self.timer.deadline_misses}")
+
+
+def _mask(flags: tuple[bool, ...]) -> int:
+    m = 0
+    for i, f in enumerate(flags):
+        if f:
+            m |= 1 << i
+    return m
+
+
+def _servo_health(state: Any) -> ServoHealth:
+    if state is None:
+        return ServoHealth.OK
+    h = state.health
+    if h is DxlHealth.OK:
+        return ServoHealth.OK
+    if h.name in ("WARNING", "DEGRADED", "OVERLOAD", "MOVING"):
+        return ServoHealth.DEGRADED
+    return ServoHealth.FAULT

@@ -1,0 +1,295 @@
+"""A flight session: from a validated session file to a flight record and a summary.
+
+Composition (the only place that knows which backend is in use):
+
+- ``emulated``: starts ``python -m sim_backend.backend`` as a child process (it owns the physics
+  and the emulated Flight-Ctrl, MX-28T and NatNet server) and reads the device addresses it
+  prints; the child dies with us (SIGTERM on parent death, stdin closed, or killed at exit);
+- ``hardware``: the URIs of the session file.
+
+Either way the same drivers are opened (``FlightCtrl``, ``TiltServo``, ``NatNetClient``), the
+UKF and the flight loop are built, and a telemetry process is started that drains the loop's
+shared-memory ring into the flight record (written every 100 ms, so a crash loses at most the
+last 100 ms) and writes the events (transitions, faults, preflight results) next to it as
+``<record>.events.txt``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import multiprocessing as mp
+import os
+import queue
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from controller.missions import Mission
+from controller.params import VehicleParams
+from drivers.dynamixel.device import TiltServo, TiltServoConfig
+from drivers.mikrokopter.device import FlightCtrl, FlightCtrlConfig
+from drivers.mocap.natnet_client import NatNetClient
+from drivers.mocap.uri import open_pose_source
+from estimator.ukf import Ukf
+from groundstation.loop import FlightLoop, LoopOptions, LoopResult
+from groundstation.record import RECORD_DTYPE, RecordWriter
+from groundstation.session_config import EmulatedBackend, HardwareBackend, SessionConfig
+from groundstation.telemetry import TelemetryRing
+
+log = logging.getLogger(__name__)
+
+#: Present Position of the emulated servo at tilt 0 (``sim_backend.backend``).
+EMULATED_SERVO_ZERO_STEPS = 1024
+
+
+class SessionError(Exception):
+    """The session could not start (a device, the emulator); printed without traceback."""
+
+
+@dataclass
+class SessionOutcome:
+    result: LoopResult
+    record_path: Path
+    events_path: Path
+    preflight: list[tuple[str, bool, str]]
+    realtime_settings: dict[str, str] = field(default_factory=dict)
+    wall_time_s: float = 0.0
+
+
+class EmulatorProcess:
+    """The emulated vehicle in a child process; its devices' addresses once ready."""
+
+    def __init__(self, cfg: EmulatedBackend, vehicle: str, start_pos_w_m: tuple[float, ...],
+                 link_dir: Path, corrupt_prob: float = 0.0) -> None:
+        args = [sys.executable, "-m", "sim_backend.backend", "--vehicle", vehicle,
+                "--disturbances", cfg.disturbances, "--seed", str(cfg.seed),
+                "--clock", cfg.clock, "--link-dir", str(link_dir),
+                "--corrupt-prob", str(corrupt_prob), "--start",
+                *(repr(float(x)) for x in start_pos_w_m)]
+        self.proc = subprocess.Popen(args, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                     stderr=None, text=True)
+        self.devices: dict[str, str] = {}
+        deadline = time.monotonic() + 60.0
+        assert self.proc.stdout is not None
+        while time.monotonic() < deadline:
+            line = self.proc.stdout.readline()
+            if not line:
+                self.close()
+                raise SessionError("the emulated vehicle exited before it was ready "
+                                   f"(exit code {self.proc.poll()})")
+            msg = json.loads(line)
+            if msg.get("ready"):
+                return
+            self.devices[msg["device"]] = msg["address"]
+        self.close()
+        raise SessionError("the emulated vehicle did not get ready within 60 s")
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            with contextlib.suppress(OSError):
+                assert self.proc.stdin is not None
+                self.proc.stdin.close()
+            try:
+                self.proc.wait(timeout=5.0)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=5.0)
+
+
+def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
+                    events: Any, events_path: str, echo_events: bool, stop: Any) -> None:
+    """The telemetry process: ring -> flight record, event queue -> events file (and stderr)."""
+    with contextlib.suppress(OSError):
+        os.nice(10)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the session ends us, not Ctrl-C
+    ring = TelemetryRing(RECORD_DTYPE, name=ring_name)
+    writer = RecordWriter(record_path, metadata, keep_in_memory=False)
+    with open(events_path, "a", encoding="utf-8") as ev:
+        while True:
+            finished = stop.is_set()
+            for row in ring.drain():
+                writer.append(row.tolist())
+            writer.flush()
+            while True:
+                try:
+                    text = events.get_nowait()
+                except queue.Empty:
+                    break
+                ev.write(text + "\n")
+                if echo_events:
+                    print(text, file=sys.stderr, flush=True)
+            ev.flush()
+            if finished and ring.written == ring.written and not len(ring.drain()):
+                break
+            time.sleep(0.05)
+    writer.close()
+    ring.close()
+
+
+class FlightSession:
+    """Runs one session: devices up, preflight, fly, land, record, report."""
+
+    def __init__(self, cfg: SessionConfig, params: VehicleParams, mission: Mission, *,
+                 record_path: Path, session_dir: Path | None = None,
+                 echo_events: bool = True, corrupt_prob: float = 0.0,
+                 realtime_settings: bool = False) -> None:
+        self.cfg = cfg
+        self.params = params
+        self.mission = mission
+        self.record_path = record_path
+        self.events_path = record_path.with_suffix(record_path.suffix + ".events.txt")
+        self.echo_events = echo_events
+        self.corrupt_prob = corrupt_prob
+        self.realtime_settings = realtime_settings
+        self._tmp = None if session_dir else tempfile.TemporaryDirectory(prefix="fasthex-")
+        self.session_dir = session_dir or Path(self._tmp.name)  # type: ignore[union-attr]
+        self.emulator: EmulatorProcess | None = None
+        self.loop: FlightLoop | None = None
+
+    def run(self) -> SessionOutcome:
+        cfg = self.cfg
+        backend = cfg.backend
+        lockstep = isinstance(backend, EmulatedBackend) and backend.clock == "lockstep"
+        fc: FlightCtrl | None = None
+        servo: TiltServo | None = None
+        mocap: Any = None
+        tel: mp.process.BaseProcess | None = None
+        ring: TelemetryRing | None = None
+        ctx = mp.get_context("spawn")
+        stop = ctx.Event()
+        events: Any = ctx.Queue(maxsize=10_000)
+        wall0 = time.perf_counter()
+        settings: dict[str, str] = {}
+        try:
+            if isinstance(backend, EmulatedBackend):
+                self.emulator = EmulatorProcess(backend, cfg.vehicle, self.mission.start_pos_w_m,
+                                                self.session_dir, self.corrupt_prob)
+                devs = self.emulator.devices
+                fc_uri, servo_uri = devs["flight-ctrl"], devs["servo"] + "?baud=1000000&id=1"
+                mocap_uri = f"natnet://{devs['mocap']}?local=127.0.0.1&body=fasthex"
+                zero_steps = EMULATED_SERVO_ZERO_STEPS
+            else:
+                assert isinstance(backend, HardwareBackend)
+                fc_uri, servo_uri, mocap_uri = (backend.flight_ctrl_uri, backend.servo_uri,
+                                                backend.mocap_uri)
+                zero_steps = 0
+            ring = TelemetryRing(RECORD_DTYPE, capacity=1 << 14)
+            meta = {"session": cfg.name, "mission": self.mission.name,
+                    "vehicle": self.params.name, "backend": backend.kind,
+                    "clock": getattr(backend, "clock", "realtime"),
+                    "seed": getattr(backend, "seed", None),
+                    "preset": getattr(backend, "disturbances", None),
+                    "rate_hz": backend.imu_rate_hz,
+                    "measured_interval_s": self.mission.measured_interval_s(),
+                    "source": "fasthex fly"}
+            self.events_path.write_text("")
+            tel = ctx.Process(target=_telemetry_main, name="fasthex-telemetry",
+                              args=(ring.name, str(self.record_path), meta, events,
+                                    str(self.events_path), self.echo_events, stop))
+            tel.start()
+
+            fc = FlightCtrl.open(fc_uri, FlightCtrlConfig(imu_rate_hz=backend.imu_rate_hz))
+            ident = fc.connect()
+            events.put_nowait(f"flight-ctrl: {ident.protocol} firmware {ident.firmware_id} "
+                              f"on {fc_uri}")
+            tilt = self.params.tilt
+            servo = TiltServo(TiltServoConfig(
+                uri=servo_uri, gear_ratio=tilt.worm_ratio, zero_offset_steps=zero_steps,
+                max_tilt_deg=tilt.max_tilt_deg, max_tilt_rate_deg_s=tilt.max_rate_deg_s,
+                rate_hz=50.0 if not lockstep else 5.0))
+            servo.start()
+            loop_box: list[FlightLoop] = []
+
+            def loop_clock() -> int:
+                return loop_box[0].now_ns if loop_box else 0
+
+            mocap = open_pose_source(mocap_uri, clock=loop_clock if lockstep else None)
+            if isinstance(mocap, NatNetClient):
+                mocap.start(receive_thread=not lockstep)
+            else:
+                mocap.start()
+            ukf = Ukf(_estimator_config(cfg, self.params))
+            row_sink = ring.push
+
+            def event_sink(text: str) -> None:
+                with contextlib.suppress(queue.Full):
+                    events.put_nowait(text)
+
+            loop = FlightLoop(
+                params=self.params, mission=self.mission, imu=fc, tilt=servo, pose=mocap,
+                estimator=ukf, limits=cfg.safety.limits(),
+                options=LoopOptions(lockstep=lockstep, imu_rate_hz=backend.imu_rate_hz,
+                                    ground_z_m=self.mission.start_pos_w_m[2]),
+                row_sink=row_sink, event_sink=event_sink)
+            loop_box.append(loop)
+            self.loop = loop
+            if self.realtime_settings and not lockstep:
+                from groundstation.timing import apply_realtime_settings
+
+                settings = apply_realtime_settings()
+                event_sink("real-time settings: " + "; ".join(f"{k}: {v}"
+                                                               for k, v in settings.items()))
+            try:
+                result = loop.run()
+            finally:
+                if self.realtime_settings and not lockstep:
+                    from groundstation.timing import restore_default_settings
+
+                    restore_default_settings()
+            result.telemetry_dropped = ring.dropped
+            event_sink(f"session ended: {result.end_reason}")
+            return SessionOutcome(result, self.record_path, self.events_path,
+                                  loop.preflight_report, settings,
+                                  time.perf_counter() - wall0)
+        finally:
+            if fc is not None:
+                with contextlib.suppress(Exception):
+                    fc.stop_motors()
+                fc.close()
+            if servo is not None:
+                with contextlib.suppress(Exception):
+                    servo.stop()
+            if mocap is not None:
+                with contextlib.suppress(Exception):
+                    mocap.close()
+            stop.set()
+            if tel is not None:
+                tel.join(timeout=30.0)
+                if tel.is_alive():
+                    tel.kill()
+            if ring is not None:
+                ring.close()
+            if self.emulator is not None:
+                self.emulator.close()
+            if self._tmp is not None:
+                self._tmp.cleanup()
+
+
+def _estimator_config(cfg: SessionConfig, params: VehicleParams) -> Any:
+    from dataclasses import replace
+
+    return replace(cfg.estimator, mass_kg=params.mass_kg, gravity_m_s2=params.gravity_m_s2)
+
+
+def summary_lines(outcome: SessionOutcome) -> list[str]:
+    r = outcome.result
+    t = r.timing
+    lines = [f"session ended: {r.end_reason} after {r.ticks} ticks "
+             f"({r.flight_time_s:.1f} s of flight, {outcome.wall_time_s:.1f} s wall)",
+             f"loop: compute p50 {t.compute_p50_ms:.3f} ms, p99 {t.compute_p99_ms:.3f} ms, "
+             f"max {t.compute_max_ms:.2f} ms; deadline misses {t.deadline_misses} "
+             f"({100 * t.miss_fraction:.3f} %); period p50 {t.period_p50_ms:.3f} ms, "
+             f"jitter p99 {t.jitter_p99_ms:.3f} ms",
+             f"faults: {len(r.faults)}; poses rejected {r.estimator_poses_rejected}; "
+             f"telemetry rows dropped {r.telemetry_dropped}"]
+    lines += [f"  fault {f}" for f in r.faults]
+    lines.append(f"flight record: {outcome.record_path}")
+    lines.append(f"events: {outcome.events_path}")
+    return lines
