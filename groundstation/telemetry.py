@@ -21,7 +21,7 @@ Low-rate events (state transitions, faults) travel in a separate bounded queue.
 from __future__ import annotations
 
 import contextlib
-from multiprocessing import resource_tracker, shared_memory
+from multiprocessing import shared_memory
 from typing import Any
 
 import numpy as np
@@ -44,11 +44,9 @@ class TelemetryRing:
         if self._owner:
             self._shm = shared_memory.SharedMemory(create=True, size=size)
         else:
+            # Readers are children of the creator (multiprocessing "spawn"): they share its
+            # resource tracker, so attaching registers nothing new and the creator unlinks.
             self._shm = shared_memory.SharedMemory(name=name)
-            # Python < 3.13 registers attached blocks with the resource tracker, which would
-            # unlink the writer's block when this reader exits: only the creator owns it.
-            with contextlib.suppress(Exception):
-                resource_tracker.unregister(self._shm._name, "shared_memory")  # type: ignore[attr-defined]
         self._header = np.ndarray((_HEADER,), dtype=np.int64, buffer=self._shm.buf, offset=0)
         if self._owner:
             self._header[:] = (0, 0, 0, self.dtype.itemsize)
