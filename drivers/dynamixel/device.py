@@ -133,6 +133,9 @@ class TiltServoConfig:
                                     doc="serial read timeout under the SDK's reply loop: its "
                                         "wait blocks in select() instead of spinning (0 = spin)")
     min_firmware: int = spec(0, ge=0, le=255, doc="refuse older firmware")
+    rate_limit_goal: bool = spec(True, doc="ramp goals at max_tilt_rate_deg_s on the wall clock; "
+                                 "False when the tilt planner already ramps them (lockstep: "
+                                 "the servo's Moving Speed still bounds the motion)")
     assume_homed: bool = spec(True, doc="trust zero_offset_steps at start (else home() first)")
 
     def __post_init__(self) -> None:
@@ -583,8 +586,9 @@ class _Worker:
         if self.homed and math.isfinite(requested) and math.isfinite(self.goal_rad):
             # dt is the real elapsed time, stalls included: the goal keeps to the configured rate
             # on average, and the servo's Moving Speed (set to the same rate) bounds the motion.
+            dt = now - self.goal_t if cfg.rate_limit_goal else math.inf
             goal = rate_limited_goal(self.goal_rad, requested, cfg.max_tilt_rad,
-                                     cfg.max_tilt_rate_rad_s, now - self.goal_t)
+                                     cfg.max_tilt_rate_rad_s, dt)
             steps = tilt_to_steps(goal, cfg.gear_ratio, self.zero)
             if steps != tilt_to_steps(self.goal_rad, cfg.gear_ratio, self.zero):
                 errors |= link.write(Reg.GOAL_POSITION, 2, to_unsigned16(steps))

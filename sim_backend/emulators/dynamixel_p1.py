@@ -402,7 +402,16 @@ class EmulatedMX28:
         return min(top, speed * 0.114 * STEPS_PER_TURN / 60.0)
 
     def step(self) -> None:
-        """Advance motion, load and temperature to the vehicle's present time."""
+        """Advance motion, load and temperature to the vehicle's present time.
+
+        The serving thread calls this every ``STEP_PERIOD_S`` and on every instruction; a
+        lockstep backend also calls it right after each ``vehicle.advance`` so that the servo's
+        trajectory is sampled at every physics step. Call it *without* holding the vehicle
+        lock: it takes that lock itself (after its own)."""
+        with self._mutex:
+            self._step()
+
+    def _step(self) -> None:
         if self._drive_clock:
             wall = time.monotonic()
             dt_wall = wall - self._last_wall

@@ -165,3 +165,27 @@ def test_that_a_power_cycle_is_detected_and_asks_for_homing(emulator: EmulatedMX
         assert not state.homed
         # Configured again and holding where it is (the worm held the tilt).
         servo.wait_for(lambda s: emulator.register(Reg.TORQUE_ENABLE) == 1, WAIT_S)
+
+
+def test_that_in_lockstep_the_servo_follows_the_simulated_clock(tmp_path: Path) -> None:
+    # Fixture: nobody advances the vehicle but this test (as the lockstep backend would).
+    vehicle = BenchVehicle(max_tilt_rate_rad_s=100 * DEG)
+    lock = threading.Lock()
+    with EmulatedMX28(vehicle, lock=lock, link_path=tmp_path / "servo") as emu, \
+            TiltServo(config_for(emu, rate_limit_goal=False)) as servo:
+        servo.wait_for(lambda s: s.ok, WAIT_S)
+        servo.set_tilt(35 * DEG)
+        servo.wait_for(lambda s: emu.register(Reg.GOAL_POSITION) == 7964, WAIT_S)
+        with lock:
+            frozen = vehicle.tilt_rad()
+        # Test: 1.5 s of simulated time, in 2 ms physics steps, as fast as the CPU goes.
+        for _ in range(750):
+            with lock:
+                vehicle.advance(0.002)
+            emu.step()
+        with lock:
+            tilt = vehicle.tilt_rad()
+    # Assert: the wall time the driver took did not move the tilt; 1.5 s of simulated time at
+    # Moving Speed 292 (9.99 deg/s of tilt) did, to within one physics step.
+    assert frozen == 0.0
+    assert tilt / DEG == pytest.approx(1.5 * 292 * 0.114 * 6 * 0.05, abs=0.03)
