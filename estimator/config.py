@@ -1,9 +1,14 @@
 """Estimator configuration: noise densities, gates, health limits; every number with its range.
 
 Defaults: the paper's sensor class (ADXRS620 gyro, MXR9500M-class accelerometer, sub-mm MoCap)
-with some margin. Noise densities follow the usual continuous-time convention: a white noise of
-density ``sigma`` (unit/sqrt(Hz)) sampled at rate ``f`` has a per-sample standard deviation of
-``sigma * sqrt(f)``, and integrates to a variance ``sigma**2 * dt`` over ``dt`` seconds.
+with some margin. Noise densities are one-sided spectral densities ``N`` (unit/sqrt(Hz)), as the
+sensor datasheets give them (rms noise = N sqrt(bandwidth)), and the project uses the same
+convention everywhere (``sim_backend.sensors`` too): white noise sampled at ``f`` is band-limited
+to the Nyquist frequency ``f / 2``, so one sample has a standard deviation of ``N sqrt(f / 2)``,
+and the two-sided density is ``N**2 / 2``: integrated over ``dt`` seconds the noise adds a
+variance of ``N**2 / 2 * dt`` (:data:`TWO_SIDED`). The bias random-walk densities follow the
+same convention; ``force_walk_n_sqrt_s`` is a model knob, not a sensor figure: the force
+variance grows by its square per second.
 """
 
 from __future__ import annotations
@@ -13,6 +18,11 @@ from dataclasses import dataclass
 from typing import Literal
 
 from config.schema import ConfigValueError, spec
+
+#: two-sided / one-sided spectral density: the variance a white noise of one-sided density N
+#: adds per second of integration is ``TWO_SIDED * N**2``; one sample at rate f has variance
+#: ``TWO_SIDED * N**2 * f``.
+TWO_SIDED = 0.5
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from .config import TWO_SIDED
 from .quaternion import angle_between, quat_exp, quat_from_euler_zyx, quat_mul, quat_to_rot
 from .ukf import PoseVerdict, Ukf
 
@@ -199,7 +200,7 @@ def make_scenario(traj: Trajectory, duration_s: float, imu: ImuModel, mocap: Moc
     n = round(duration_s * imu.rate_hz)
     t = t0_s + np.arange(1, n + 1) / imu.rate_hz
     truth = sample_truth(traj, t, gravity_m_s2)
-    root_rate = math.sqrt(imu.rate_hz)
+    root_rate = math.sqrt(TWO_SIDED * imu.rate_hz)   # one-sided densities (estimator.config)
     gyro = (truth.omega_b_rad_s + np.asarray(imu.gyro_bias_rad_s)
             + rng.normal(0.0, imu.gyro_noise_rad_s_sqrt_hz * root_rate, (n, 3)))
     accel_noise = rng.normal(0.0, imu.accel_noise_m_s2_sqrt_hz * root_rate, (n, 3))

@@ -40,7 +40,7 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
-from .config import EstimatorConfig
+from .config import TWO_SIDED, EstimatorConfig
 from .kernels import FastKernel, FilterpyKernel, Kernel
 from .quaternion import (
     left_matrix,
@@ -341,15 +341,16 @@ class Ukf:
         if dt == self._q_cache_dt:
             return self._q_cache
         cfg = self.cfg
-        qa = cfg.accel_noise_m_s2_sqrt_hz ** 2
+        # one-sided densities -> variance per second of integration (config docstring)
+        qa = TWO_SIDED * cfg.accel_noise_m_s2_sqrt_hz ** 2
         Q = np.zeros((STATE_DIM, STATE_DIM))
         i3 = np.eye(3)
         Q[POS, POS] = qa * dt ** 3 / 3.0 * i3
         Q[POS, VEL] = Q[VEL, POS] = qa * dt ** 2 / 2.0 * i3
         Q[VEL, VEL] = qa * dt * i3
-        Q[ATT, ATT] = cfg.gyro_noise_rad_s_sqrt_hz ** 2 * dt * i3
-        Q[GYRO_BIAS, GYRO_BIAS] = cfg.gyro_bias_walk_rad_s2_sqrt_hz ** 2 * dt * i3
-        Q[ACCEL_BIAS, ACCEL_BIAS] = cfg.accel_bias_walk_m_s3_sqrt_hz ** 2 * dt * i3
+        Q[ATT, ATT] = TWO_SIDED * cfg.gyro_noise_rad_s_sqrt_hz ** 2 * dt * i3
+        Q[GYRO_BIAS, GYRO_BIAS] = TWO_SIDED * cfg.gyro_bias_walk_rad_s2_sqrt_hz ** 2 * dt * i3
+        Q[ACCEL_BIAS, ACCEL_BIAS] = TWO_SIDED * cfg.accel_bias_walk_m_s3_sqrt_hz ** 2 * dt * i3
         self._q_cache_dt, self._q_cache = dt, Q
         return Q
 
@@ -552,9 +553,9 @@ class Ukf:
                     f_cmd - self._force_produced_b)
             f_cmd = self._force_produced_b
         z = rotate_single(self._q_ref, m * (accel - self._x[ACCEL_BIAS]) - f_cmd)
-        # per-sample accelerometer noise variance (density^2 / dt) plus the bias uncertainty
+        # per-sample accelerometer noise variance (N^2 f / 2) plus the bias uncertainty
         P = self._P
-        r = m * m * (cfg.accel_noise_m_s2_sqrt_hz ** 2 / dt
+        r = m * m * (TWO_SIDED * cfg.accel_noise_m_s2_sqrt_hz ** 2 / dt
                      + (P.item(12, 12) + P.item(13, 13) + P.item(14, 14)) / 3.0)
         gain = self._force_var / (self._force_var + r)
         self._force_w += gain * (z - self._force_w)

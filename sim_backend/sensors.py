@@ -2,8 +2,10 @@
 
 IMU (paper: ADXRS620 gyros, MXR9500M accelerometer): each sample is the true body rate and
 specific force plus a constant bias drawn once per run (sigma ``*_bias_sigma_*``) and white noise
-of standard deviation ``density * sqrt(rate / 2)`` (the noise density integrated up to the
-Nyquist frequency).
+of standard deviation ``density * sqrt(rate / 2)``: the densities are one-sided, as on the
+datasheets (rms noise = density * sqrt(bandwidth)), and a sampled white noise is band-limited to
+the Nyquist frequency ``rate / 2``. The estimator uses the same convention
+(``estimator.config``: an integrated variance of ``density**2 / 2`` per second).
 
 MoCap: a frame is captured every ``1 / mocap_rate_hz`` s of simulated time with Gaussian
 position noise and a small random rotation (``mocap_att_noise_rad`` per axis), is lost with

@@ -20,7 +20,7 @@ def test_that_the_filter_starts_from_rest_with_the_gyro_bias_of_the_rest_period(
     def watch(k: int) -> None:
         if est.initialized and not first_init_t:
             first_init_t.append(float(sc.truth.t_s[k]))
-            # the rest mean: per-sample gyro noise / sqrt(samples) ~ 1.2 mrad/s after 0.5 s
+            # the rest mean: per-sample gyro noise / sqrt(samples) ~ 0.9 mrad/s after 0.5 s
             err = est.estimate().gyro_bias_rad_s - sy.PAPER_IMU.gyro_bias_rad_s
             assert np.abs(err).max() < 4e-3
 
