@@ -1,0 +1,262 @@
+"""Static report of a flight record: the paper's "Plots of Experiment 1/2" figure and a metrics
+table, for a lab notebook or a paper without a viewer.
+
+The figure stacks eight panels over time, as in the paper's Fig. "Plots of Experiment 2-a/b":
+
+1. actual vs reference position; 2. position tracking error; 3. reference attitude (Euler
+angles); 4. desired and actual attitude; 5. attitude tracking error; 6. propeller spin rates with
+their limits; 7. maximum (``r_xy``) vs actual (``|u_f xy|``) lateral force; 8. reference, commanded
+and actual tilt angle alpha. The background is red while the vehicle is under-actuated
+(alpha < :data:`groundstation.metrics.UDT_MAX_DEG`) and green while it is fully actuated.
+
+The metrics are :func:`groundstation.metrics.flight_metrics` of the record, exactly the numbers
+``fasthex simulate`` prints, written as ``metrics.json`` (NaN as null, like ``simulate --json``)
+and as a markdown table ``metrics.md``.
+
+:func:`panel_signals` derives the plotted signals from the record's rows; the live dashboard
+(:mod:`groundstation.dashboard`) plots the same signals. Euler angles are ZYX (roll, pitch, yaw)
+in degrees; the attitude error is the signed ZYX angles of ``R_r^T R_B``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from groundstation.metrics import MDT_MIN_DEG, PHASES, UDT_MAX_DEG, flight_metrics, quat_to_rot
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+#: actuation states of the dashboard's state track
+UDT, FULL, MDT = 0, 1, 2
+FIGURE_NAME = "plots.png"
+METRICS_JSON = "metrics.json"
+METRICS_MD = "metrics.md"
+
+
+def euler_zyx_deg(rot: FloatArray) -> FloatArray:
+    """Roll, pitch, yaw (ZYX convention, degrees) of rotation matrices (N, 3, 3) -> (N, 3)."""
+    roll = np.arctan2(rot[..., 2, 1], rot[..., 2, 2])
+    pitch = -np.arcsin(np.clip(rot[..., 2, 0], -1.0, 1.0))
+    yaw = np.arctan2(rot[..., 1, 0], rot[..., 0, 0])
+    return np.degrees(np.stack([roll, pitch, yaw], -1))
+
+
+def actuation_state(alpha_deg: FloatArray) -> IntArray:
+    """0 = under-actuated (UDT), 1 = fully actuated below MDT, 2 = MDT, per tick."""
+    state = np.full(alpha_deg.shape, FULL, dtype=np.int64)
+    state[np.abs(alpha_deg) < UDT_MAX_DEG] = UDT
+    state[np.abs(alpha_deg) > MDT_MIN_DEG] = MDT
+    return state
+
+
+@dataclass(frozen=True)
+class PanelSignals:
+    """The plotted signals of a block of record rows (SI units unless the name says)."""
+
+    t_s: FloatArray
+    pos_ref_w_m: FloatArray          # (N, 3)
+    pos_w_m: FloatArray              # (N, 3)
+    pos_err_mm: FloatArray           # (N, 3) actual - reference
+    pos_err_norm_mm: FloatArray      # (N,)
+    eul_ref_deg: FloatArray          # (N, 3) roll, pitch, yaw of R_r
+    eul_des_deg: FloatArray          # of R_d
+    eul_deg: FloatArray              # of R_B
+    att_err_deg: FloatArray          # (N, 3) of R_r^T R_B
+    spin_hz: FloatArray              # (N, 6) measured
+    spin_cmd_hz: FloatArray          # (N, 6) commanded
+    r_xy_n: FloatArray               # (N,) maximum lateral force
+    lat_force_n: FloatArray          # (N,) |u_f xy|, the lateral force applied
+    alpha_ref_deg: FloatArray        # NaN while the tilt planner is in auto mode
+    alpha_cmd_deg: FloatArray
+    alpha_deg: FloatArray
+    actuation: IntArray              # UDT / FULL / MDT
+    sat_count: IntArray              # rotors clamped this tick
+    measured: npt.NDArray[np.bool_]
+
+
+def panel_signals(rows: np.ndarray) -> PanelSignals:
+    """Derive every plotted signal from record rows (vectorised, ~1 us per row)."""
+    def f(name: str) -> FloatArray:
+        return np.asarray(rows[name], dtype=np.float64)
+
+    pos_ref, pos = f("pos_ref_w_m"), f("pos_w_m")
+    err = 1000.0 * (pos - pos_ref)
+    r_r, r_d, r_b = quat_to_rot(f("q_wr")), quat_to_rot(f("q_wd")), quat_to_rot(f("q_wb"))
+    alpha_deg = np.degrees(f("alpha_rad"))
+    sat = np.unpackbits(np.asarray(rows["sat_mask"], dtype=np.uint8)[:, None], axis=1)
+    return PanelSignals(
+        t_s=f("t_s"), pos_ref_w_m=pos_ref, pos_w_m=pos, pos_err_mm=err,
+        pos_err_norm_mm=np.linalg.norm(err, axis=1),
+        eul_ref_deg=euler_zyx_deg(r_r), eul_des_deg=euler_zyx_deg(r_d),
+        eul_deg=euler_zyx_deg(r_b),
+        att_err_deg=euler_zyx_deg(np.swapaxes(r_r, -1, -2) @ r_b),
+        spin_hz=f("spin_hz"), spin_cmd_hz=f("spin_cmd_hz"), r_xy_n=f("r_xy_n"),
+        lat_force_n=np.linalg.norm(f("u_f_b_n")[:, :2], axis=1),
+        alpha_ref_deg=np.degrees(f("alpha_ref_rad")), alpha_cmd_deg=np.degrees(f("alpha_cmd_rad")),
+        alpha_deg=alpha_deg, actuation=actuation_state(alpha_deg),
+        sat_count=sat.sum(axis=1).astype(np.int64),
+        measured=np.asarray(rows["measured"], dtype=bool))
+
+
+def phase_spans(t_s: FloatArray, state: IntArray) -> list[tuple[float, float, int]]:
+    """Maximal runs of equal ``state`` as (t_start, t_end, state); a run ends where the next
+    begins, the last at the final tick."""
+    if len(t_s) == 0:
+        return []
+    change = np.flatnonzero(np.diff(state)) + 1
+    starts = np.concatenate([[0], change])
+    ends = np.concatenate([change, [len(t_s) - 1]])
+    return [(float(t_s[a]), float(t_s[b]), int(state[a])) for a, b in zip(starts, ends,
+                                                                            strict=True)]
+
+
+# -- metrics ---------------------------------------------------------------------------------
+def record_metrics(rows: np.ndarray, metadata: dict[str, Any]) -> dict[str, float]:
+    """:func:`flight_metrics` with the spin limits of the record's vehicle (as ``simulate``)."""
+    from groundstation.configs import load_vehicle
+
+    params = load_vehicle(str(metadata.get("vehicle", "fasthex")))
+    return flight_metrics(rows, min_spin_hz=params.rotors.min_spin_hz,
+                          max_spin_hz=params.rotors.max_spin_hz)
+
+
+def metrics_json(metrics: dict[str, float]) -> dict[str, float | None]:
+    """NaN -> None, the convention of ``fasthex simulate --json``."""
+    return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in metrics.items()}
+
+
+def _fmt(v: float) -> str:
+    if math.isnan(v):
+        return "-"
+    if float(v).is_integer() and abs(v) >= 1:
+        return f"{v:.0f}"
+    return f"{v:.4g}"
+
+
+def metrics_markdown(metrics: dict[str, float], title: str = "") -> str:
+    """A markdown table: one row per quantity (unit in its name), one column per phase."""
+    quantities = [k[len("all_"):] for k in metrics if k.startswith("all_")
+                  and all(f"{p}_{k[len('all_'):]}" in metrics for p in PHASES)]
+    lines = [f"## {title}", ""] if title else []
+    lines += ["| quantity | all | UDT | MDT |", "|---|---:|---:|---:|"]
+    for q in quantities:
+        cells = " | ".join(_fmt(metrics[f"{p}_{q}"]) for p in PHASES)
+        lines.append(f"| {q} | {cells} |")
+    extra = [k for k in metrics if not any(k == f"{p}_{q}" for p in PHASES for q in quantities)]
+    if extra:
+        lines += ["", "| flight | value |", "|---|---:|"]
+        lines += [f"| {k} | {_fmt(metrics[k])} |" for k in extra]
+    return "\n".join(lines) + "\n"
+
+
+# -- figure ----------------------------------------------------------------------------------
+_AXIS_COLORS = ("tab:red", "tab:green", "tab:blue")
+_SHADE = {UDT: ("#d62728", 0.12), FULL: ("#2ca02c", 0.10), MDT: ("#2ca02c", 0.10)}
+
+
+def render_figure(rows: np.ndarray, path: str | Path, *, title: str = "",
+                  min_spin_hz: float | None = None, max_spin_hz: float | None = None,
+                  dpi: int = 110) -> Path:
+    """Write the eight-panel figure of ``rows`` to ``path`` (PNG); returns the path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    s = panel_signals(rows)
+    t = s.t_s
+    fig, axes = plt.subplots(8, 1, sharex=True, figsize=(10.0, 16.0), constrained_layout=True)
+    xyz = ("x", "y", "z")
+    rpy = (r"$\phi$", r"$\theta$", r"$\psi$")
+
+    def lines(ax: Any, data: FloatArray, labels: tuple[str, ...], style: str = "-",
+              **kw: Any) -> None:
+        for i, lab in enumerate(labels):
+            ax.plot(t, data[:, i], style, color=_AXIS_COLORS[i % 3], label=lab, lw=1.0, **kw)
+
+    ax = axes[0]
+    lines(ax, s.pos_w_m, tuple(f"$p_{a}$" for a in xyz))
+    lines(ax, s.pos_ref_w_m, tuple(f"$p_{{{a},r}}$" for a in xyz), "--")
+    ax.set_ylabel("position [m]")
+    ax = axes[1]
+    lines(ax, s.pos_err_mm, tuple(f"$e_{a}$" for a in xyz))
+    ax.plot(t, s.pos_err_norm_mm, color="k", lw=0.8, label=r"$|e_p|$")
+    ax.set_ylabel("pos. error [mm]")
+    lines(axes[2], s.eul_ref_deg, tuple(f"{a}$_r$" for a in rpy))
+    axes[2].set_ylabel("ref. att. [deg]")
+    ax = axes[3]
+    lines(ax, s.eul_des_deg, tuple(f"{a}$_d$" for a in rpy), "--")
+    lines(ax, s.eul_deg, rpy)
+    ax.set_ylabel("des./act. att. [deg]")
+    lines(axes[4], s.att_err_deg, tuple(f"$e_{{{a[1:-1]}}}$" for a in rpy))
+    axes[4].set_ylabel("att. error [deg]")
+    ax = axes[5]
+    for i in range(s.spin_hz.shape[1]):
+        ax.plot(t, s.spin_hz[:, i], lw=0.8, label=f"$w_{i + 1}$")
+    for lim in (min_spin_hz, max_spin_hz):
+        if lim is not None:
+            ax.axhline(lim, color="k", ls=":", lw=1.0)
+    ax.set_ylabel("spin [Hz]")
+    ax = axes[6]
+    ax.plot(t, s.r_xy_n, color="k", lw=1.0, label=r"max $r_{xy}$")
+    ax.plot(t, s.lat_force_n, color="tab:purple", lw=0.8, label=r"$|u_{f,xy}|$")
+    ax.set_ylabel("lateral force [N]")
+    ax = axes[7]
+    ax.plot(t, s.alpha_ref_deg, "--", color="k", lw=1.0, label=r"$\alpha_r$")
+    ax.plot(t, s.alpha_cmd_deg, ":", color="tab:orange", lw=1.0, label=r"$\alpha_{cmd}$")
+    ax.plot(t, s.alpha_deg, color="tab:blue", lw=1.0, label=r"$\alpha$")
+    ax.set_ylabel("tilt [deg]")
+    ax.set_xlabel("time [s]")
+    spans = phase_spans(t, s.actuation)
+    for ax in axes:
+        for a, b, state in spans:
+            color, alpha = _SHADE[state]
+            ax.axvspan(a, b, color=color, alpha=alpha, lw=0)
+        ax.grid(True, lw=0.3)
+        ax.legend(loc="upper right", fontsize=7, ncol=6, framealpha=0.7)
+    if len(t):
+        axes[-1].set_xlim(float(t[0]), float(t[-1]))
+    if title:
+        fig.suptitle(title + "  (red: under-actuated, green: fully actuated)", fontsize=10)
+    out = Path(path)
+    fig.savefig(out, dpi=dpi)
+    plt.close(fig)
+    return out
+
+
+@dataclass(frozen=True)
+class ReportFiles:
+    figure: Path
+    metrics_json: Path
+    metrics_md: Path
+    metrics: dict[str, float]
+
+
+def write_report(record_path: str | Path, out_dir: str | Path) -> ReportFiles:
+    """Figure + metrics (JSON, markdown) of a flight record into ``out_dir`` (created)."""
+    from groundstation.configs import load_vehicle
+    from groundstation.record import read_record
+
+    record = read_record(record_path)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    meta = record.metadata
+    params = load_vehicle(str(meta.get("vehicle", "fasthex")))
+    metrics = record_metrics(record.rows, meta)
+    title = " / ".join(str(meta[k]) for k in ("mission", "vehicle", "preset") if k in meta)
+    figure = render_figure(record.rows, out / FIGURE_NAME, title=title or Path(record_path).name,
+                           min_spin_hz=params.rotors.min_spin_hz,
+                           max_spin_hz=params.rotors.max_spin_hz)
+    js = out / METRICS_JSON
+    js.write_text(json.dumps(metrics_json(metrics), indent=1) + "\n", encoding="utf-8")
+    md = out / METRICS_MD
+    md.write_text(metrics_markdown(metrics, title or Path(record_path).name), encoding="utf-8")
+    return ReportFiles(figure, js, md, metrics)
