@@ -181,8 +181,7 @@ class FlightLoop:
                         mocap_start_pos = pose.pos_w_m
             if opts.lockstep and n % opts.servo_sync_every == 0:
                 try:
-                    sync = getattr(self.tilt, "sync_cycle", None)
-                    servo_state = sync(1.0) if sync is not None else self.tilt.latest()
+                    servo_state = self.tilt.sync_cycle(1.0)
                 except Exception as exc:  # a servo fault is a health state, not a crash
                     self._counters["servo_sync_failures"] += 1
                     log.debug("servo sync failed: %s", exc)

@@ -203,7 +203,9 @@ class FlightSession:
             servo = TiltServo(TiltServoConfig(
                 uri=servo_uri, gear_ratio=tilt.worm_ratio, zero_offset_steps=zero_steps,
                 max_tilt_deg=tilt.max_tilt_deg, max_tilt_rate_deg_s=tilt.max_rate_deg_s,
-                rate_hz=50.0 if not lockstep else 5.0))
+                rate_hz=50.0, serve="on_request" if lockstep else "periodic",
+                # in lockstep the tilt planner's ramp is the rate limit (sim time)
+                rate_limit_goal=not lockstep))
             servo.start()
             loop_box: list[FlightLoop] = []
 

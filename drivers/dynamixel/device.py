@@ -137,6 +137,10 @@ class TiltServoConfig:
                                  "False when the tilt planner already ramps them (lockstep: "
                                  "the servo's Moving Speed still bounds the motion)")
     assume_homed: bool = spec(True, doc="trust zero_offset_steps at start (else home() first)")
+    serve: Literal["periodic", "on_request"] = spec(
+        "periodic", doc="periodic: a service cycle every 1/rate_hz s of wall time; on_request: "
+        "only when the owner calls sync_cycle() (a lockstep flight, where the cycle must happen "
+        "at a fixed simulated time)")
 
     def __post_init__(self) -> None:
         parse_servo_uri(self.uri)  # raises TransportUriError, a ValueError
@@ -654,6 +658,10 @@ class _Worker:
             return self.zero
         if name == "torque":
             return self.link.write(Reg.TORQUE_ENABLE, 1, int(bool(args[0])))
+        if name == "cycle":
+            health, errors = self.cycle()
+            self.publish(health, errors)
+            return int(health)
         raise ValueError(f"unknown servo command {name!r}")
 
     def fail(self, exc: ServoCommError) -> None:
@@ -711,6 +719,12 @@ class _Worker:
                     else:
                         self.fail(exc)
                     continue
+            if self.cfg.serve == "on_request":
+                if self.conn is not None:
+                    self.conn.poll(period)  # wake for the next request
+                else:
+                    self.stop.wait(period)
+                continue
             try:
                 health, errors = self.cycle()
             except _ReconfigureError:
@@ -879,6 +893,15 @@ class TiltServo:
         if status == "error":
             raise value
         return value
+
+    def sync_cycle(self, timeout_s: float) -> ServoState:
+        """Run one service cycle now (goal write + state read) and return its measurement.
+
+        For ``serve="on_request"`` (lockstep flights): the caller blocks for one bus round trip
+        (about 1.3 ms), so the exchange happens at a fixed simulated time. Raises
+        :class:`ServoCommError` if the servo process does not answer within ``timeout_s``."""
+        self._request(timeout_s, "cycle")
+        return self.latest()
 
     def probe(self, timeout_s: float = 2.0) -> ServoIdentity:
         """Identify the servo (model, firmware, mode): through the servo process if started."""
