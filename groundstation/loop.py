@@ -12,9 +12,10 @@ One tick (``architecture.md``, "One tick"):
 6. one flight-record row into the telemetry ring (never blocks), the tick's timing recorded.
 
 Time: in ``lockstep`` the tick time is the IMU sample counter times the IMU period (the
-emulated board's simulated clock, so two runs are identical); on hardware and in ``realtime``
-it is the sample time rebuilt by the driver on the host's monotonic clock, the clock the MoCap
-driver stamps capture times with. Nothing in the tick sleeps or blocks on I/O except the
+emulated board's simulated clock, so two runs are identical and row k of the record is IMU
+sample k); on hardware and in ``realtime`` it is the sample time rebuilt by the driver on the
+host's monotonic clock (the clock the MoCap driver stamps capture times with), from the first
+sample on. Nothing in the tick sleeps or blocks on I/O except the
 deliberate wait for the IMU sample (and, in lockstep only, the servo cycle).
 """
 
@@ -159,8 +160,8 @@ class FlightLoop:
             self._counters["imu_timeouts"] = 0
             t_ns = imu.seq * self.period_ns if opts.lockstep else imu.t_ns
             self.now_ns = t_ns
-            if t0_s is None:
-                t0_s = t_ns * 1e-9
+            if t0_s is None:  # lockstep: the board's own clock, sample k at k periods
+                t0_s = 0.0 if opts.lockstep else t_ns * 1e-9
             t_s = t_ns * 1e-9 - t0_s
             last_imu_t_s = t_s
 

@@ -137,11 +137,19 @@ class RecordWriter:
         if len(self._pending) >= self.flush_rows:
             self.flush()
 
+    def append_block(self, rows: Rows) -> None:
+        """Append many rows at once (a structured array of :data:`RECORD_DTYPE`)."""
+        self.flush()
+        self._write_block(np.asarray(rows, dtype=RECORD_DTYPE))
+
     def flush(self) -> None:
         if not self._pending:
             return
         block = np.array(self._pending, dtype=RECORD_DTYPE)
         self._pending = []
+        self._write_block(block)
+
+    def _write_block(self, block: Rows) -> None:
         if self._fd is not None:
             data = block.tobytes()
             view = memoryview(data)

@@ -31,6 +31,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from controller.missions import Mission
 from controller.params import VehicleParams
 from drivers.dynamixel.device import TiltServo, TiltServoConfig
@@ -67,12 +69,17 @@ class EmulatorProcess:
     """The emulated vehicle in a child process; its devices' addresses once ready."""
 
     def __init__(self, cfg: EmulatedBackend, vehicle: str, start_pos_w_m: tuple[float, ...],
-                 link_dir: Path, corrupt_prob: float = 0.0) -> None:
+                 link_dir: Path, corrupt_prob: float = 0.0, truth_path: Path | None = None
+                 ) -> None:
         args = [sys.executable, "-m", "sim_backend.backend", "--vehicle", vehicle,
                 "--disturbances", cfg.disturbances, "--seed", str(cfg.seed),
                 "--clock", cfg.clock, "--link-dir", str(link_dir),
-                "--corrupt-prob", str(corrupt_prob), "--start",
+                "--corrupt-prob", str(corrupt_prob or cfg.corrupt_prob), "--start",
                 *(repr(float(x)) for x in start_pos_w_m)]
+        for fault in cfg.faults:
+            args += ["--fault", fault]
+        if truth_path is not None:
+            args += ["--truth", str(truth_path)]
         self.proc = subprocess.Popen(args, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                      stderr=None, text=True)
         self.devices: dict[str, str] = {}
@@ -114,9 +121,9 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
     with open(events_path, "a", encoding="utf-8") as ev:
         while True:
             finished = stop.is_set()
-            for row in ring.drain():
-                writer.append(row.tolist())
-            writer.flush()
+            rows = ring.drain()
+            if len(rows):
+                writer.append_block(rows)
             while True:
                 try:
                     text = events.get_nowait()
@@ -126,7 +133,10 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
                 if echo_events:
                     print(text, file=sys.stderr, flush=True)
             ev.flush()
-            if finished and ring.written == ring.written and not len(ring.drain()):
+            if finished:
+                rest = ring.drain()
+                if len(rest):
+                    writer.append_block(rest)
                 break
             time.sleep(0.05)
     writer.close()
@@ -167,10 +177,12 @@ class FlightSession:
         events: Any = ctx.Queue(maxsize=10_000)
         wall0 = time.perf_counter()
         settings: dict[str, str] = {}
+        truth_path: Path | None = None
         try:
             if isinstance(backend, EmulatedBackend):
+                truth_path = self.session_dir / "truth.f64"
                 self.emulator = EmulatorProcess(backend, cfg.vehicle, self.mission.start_pos_w_m,
-                                                self.session_dir, self.corrupt_prob)
+                                                self.session_dir, self.corrupt_prob, truth_path)
                 devs = self.emulator.devices
                 fc_uri, servo_uri = devs["flight-ctrl"], devs["servo"] + "?baud=1000000&id=1"
                 mocap_uri = f"natnet://{devs['mocap']}?local=127.0.0.1&body=fasthex"
@@ -270,8 +282,43 @@ class FlightSession:
                 ring.close()
             if self.emulator is not None:
                 self.emulator.close()
+                if lockstep and truth_path is not None and truth_path.exists():
+                    with contextlib.suppress(Exception):
+                        merge_truth(self.record_path, truth_path, backend.imu_rate_hz)
             if self._tmp is not None:
                 self._tmp.cleanup()
+
+
+def merge_truth(record_path: Path, truth_path: Path, imu_rate_hz: float) -> int:
+    """Put the emulated vehicle's true state into a lockstep flight record.
+
+    Row k of a lockstep record is IMU sample k (its ``t_s`` is k IMU periods), and the truth log
+    holds the true state at every IMU sample, so they pair by index. ``pos_w_m``, ``vel_w_m_s``,
+    ``q_wb`` and ``omega_b_rad_s`` become the truth (what the metrics score, as in ``fasthex
+    simulate``); ``est_pos_w_m`` and ``est_q_wb`` keep what the controller was fed. The file is
+    replaced atomically. Returns the number of rows given a true state."""
+    from groundstation.record import RecordWriter, read_record
+    from sim_backend.backend import TruthLog
+
+    rec = read_record(record_path)
+    truth = TruthLog.read(truth_path)
+    rows = rec.rows.copy()
+    idx = np.rint(rows["t_s"] * imu_rate_hz).astype(np.int64)
+    ok = (idx >= 0) & (idx < len(truth))
+    if not np.any(ok):
+        return 0
+    t = truth[idx[ok]]
+    rows["pos_w_m"][ok] = t[:, 1:4]
+    rows["vel_w_m_s"][ok] = t[:, 4:7]
+    rows["q_wb"][ok] = t[:, 7:11]
+    rows["omega_b_rad_s"][ok] = t[:, 11:14]
+    meta = dict(rec.metadata, state="true state of the emulated vehicle (est_*: the estimate)")
+    tmp = record_path.with_suffix(record_path.suffix + ".tmp")
+    writer = RecordWriter(tmp, meta, keep_in_memory=False)
+    writer.append_block(rows)
+    writer.close()
+    os.replace(tmp, record_path)
+    return int(np.sum(ok))
 
 
 def _estimator_config(cfg: SessionConfig, params: VehicleParams) -> Any:

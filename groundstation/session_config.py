@@ -43,6 +43,19 @@ class EmulatedBackend:
     disturbances: str = spec("paper-calibrated", doc="simulator preset (disturbances, sensor "
                              "noise, MoCap rate and latency): name or file")
     imu_rate_hz: float = spec(500.0, ge=100.0, le=2000.0, doc="IMU stream rate requested")
+    faults: tuple[str, ...] = spec((), doc="faults to rehearse, KIND@T[:DURATION] in simulated "
+                                   "seconds: mocap-dropout, fc-disconnect, servo-silent")
+    corrupt_prob: float = spec(0.0, ge=0.0, le=0.1,
+                               doc="byte corruption probability on the Flight-Ctrl link")
+
+    def __post_init__(self) -> None:
+        from sim_backend.backend import ScheduledFault
+
+        for i, text in enumerate(self.faults):
+            try:
+                ScheduledFault.parse(text)
+            except ValueError as exc:
+                raise ConfigValueError(f"faults[{i}]", str(exc)) from None
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -29,16 +29,18 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Protocol
+
+import numpy as np
 
 from config import find_config
 from config.schema import load_config
 from controller.params import VEHICLE_SCHEMA, VehicleParams
 from sim_backend.disturbances import DISTURBANCES_SCHEMA, DisturbancePreset
-from sim_backend.emulators.dynamixel_p1 import EmulatedMX28
+from sim_backend.emulators.dynamixel_p1 import EmulatedMX28, Fault
 from sim_backend.emulators.flightctrl import (
     EmulatedFlightCtrl,
     FlightCtrlEmulatorConfig,
@@ -66,6 +68,38 @@ class BackendOptions:
     link_dir: Path | None = None
     wire_faults: WireFaults = field(default_factory=WireFaults)
     watchdog_s: float = 0.25
+    faults: tuple[ScheduledFault, ...] = ()
+    truth_path: Path | None = None
+
+
+@dataclass(frozen=True)
+class ScheduledFault:
+    """A fault to inject at a simulated time: ``kind@T`` or ``kind@T:DURATION`` (seconds).
+
+    Kinds: ``mocap-dropout`` (markers occluded for DURATION), ``fc-disconnect`` (the
+    Flight-Ctrl cable is pulled), ``servo-silent`` (the servo stops answering)."""
+
+    kind: Literal["mocap-dropout", "fc-disconnect", "servo-silent"]
+    t_s: float
+    duration_s: float = 0.0
+
+    @classmethod
+    def parse(cls, text: str) -> ScheduledFault:
+        kind, _, when = text.partition("@")
+        t, _, dur = when.partition(":")
+        if kind not in FAULT_KINDS or not t:
+            raise ValueError(f"fault {text!r}: expected KIND@T[:DURATION] with KIND one of "
+                             f"{', '.join(FAULT_KINDS)}")
+        try:
+            t_s, dur_s = float(t), float(dur) if dur else 0.0
+        except ValueError:
+            raise ValueError(f"fault {text!r}: T and DURATION are seconds") from None
+        if t_s < 0.0 or dur_s < 0.0:
+            raise ValueError(f"fault {text!r}: times must be >= 0")
+        return cls(kind, t_s, dur_s)  # type: ignore[arg-type]
+
+
+FAULT_KINDS = ("mocap-dropout", "fc-disconnect", "servo-silent")
 
 
 @dataclass(frozen=True)
@@ -73,6 +107,41 @@ class DeviceAddress:
     device: str
     kind: Literal["pty", "udp"]
     address: str
+
+
+class TruthLog:
+    """The true state at every IMU sample, for scoring a flight flown through the byte path.
+
+    Binary file of float64 rows ``t_s, pos_w_m[3], vel_w_m_s[3], q_wb[4], omega_b_rad_s[3]``
+    (14 columns), appended every 50 rows (100 ms at 500 Hz) so a killed emulator loses little.
+    """
+
+    COLUMNS = 14
+
+    def __init__(self, path: Path) -> None:
+        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        self._rows: list[tuple[float, ...]] = []
+
+    def append(self, row: tuple[float, ...]) -> None:
+        self._rows.append(row)
+        if len(self._rows) >= 50:
+            self.flush()
+
+    def flush(self) -> None:
+        if self._rows and self._fd >= 0:
+            os.write(self._fd, np.asarray(self._rows, dtype=np.float64).tobytes())
+            self._rows = []
+
+    def close(self) -> None:
+        self.flush()
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+    @classmethod
+    def read(cls, path: Path) -> np.ndarray:
+        data = np.fromfile(path, dtype=np.float64)
+        return data[: len(data) // cls.COLUMNS * cls.COLUMNS].reshape(-1, cls.COLUMNS)
 
 
 class _Publisher(Protocol):
@@ -86,6 +155,9 @@ class _SteppedVehicle:
     def __init__(self, sim: FastHexSimulator) -> None:
         self.sim = sim
         self.on_advance: list[_Publisher] = []
+        #: (simulated time, action) pairs, run once when the time is reached
+        self.scheduled: list[tuple[float, Callable[[], None]]] = []
+        self.truth: TruthLog | None = None
 
     def now_s(self) -> float:
         return self.sim.now_s()
@@ -93,6 +165,8 @@ class _SteppedVehicle:
     def advance(self, dt_s: float) -> None:
         self.sim.advance(dt_s)
         now = self.sim.now_s()
+        while self.scheduled and self.scheduled[0][0] <= now:
+            self.scheduled.pop(0)[1]()
         for publisher in self.on_advance:
             publisher.publish_due(now)
 
@@ -106,6 +180,10 @@ class _SteppedVehicle:
         return self.sim.motor_currents_a()
 
     def read_imu(self) -> ImuReading:
+        if self.truth is not None:  # the Flight-Ctrl samples the IMU: log the truth with it
+            st = self.sim.state()
+            self.truth.append((self.sim.now_s(), *st.pos_w_m, *st.vel_w_m_s, *st.q_wb,
+                               *st.omega_b_rad_s))
         return self.sim.read_imu()
 
     def command_tilt_rad(self, tilt_rad: float) -> None:
@@ -158,7 +236,20 @@ class EmulatedVehicleBackend:
             lock=threading.Lock(),
         )
         self.vehicle.on_advance.append(self.mocap)
+        if opts.truth_path is not None:
+            self.vehicle.truth = TruthLog(opts.truth_path)
+        for fault in sorted(opts.faults, key=lambda f: f.t_s):
+            self.vehicle.scheduled.append((fault.t_s, self._fault_action(fault)))
         self._started = False
+
+    def _fault_action(self, fault: ScheduledFault) -> Callable[[], None]:
+        if fault.kind == "mocap-dropout":
+            frames = max(1, round(fault.duration_s * self.mocap.config.rate_hz))
+            return lambda: self.mocap.occlude(frames)
+        if fault.kind == "servo-silent":
+            return lambda: self.servo.set_fault(Fault.SILENT)
+        # fc-disconnect: from the Flight-Ctrl's own thread, which is advancing the physics
+        return lambda: threading.Thread(target=self.flight_ctrl.disconnect, daemon=True).start()
 
     def start(self) -> list[DeviceAddress]:
         self.mocap.start(realtime=False)
@@ -178,6 +269,8 @@ class EmulatedVehicleBackend:
         for stop in (self.flight_ctrl.stop, self.servo.close, self.mocap.close):
             with contextlib.suppress(Exception):
                 stop()
+        if self.vehicle.truth is not None:
+            self.vehicle.truth.close()
 
 
 def _die_with_parent() -> None:
@@ -204,7 +297,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--corrupt-prob", type=float, default=0.0,
                     help="byte corruption probability on the Flight-Ctrl link")
     ap.add_argument("--watchdog-s", type=float, default=0.25)
+    ap.add_argument("--truth", type=Path, default=None,
+                    help="log the true state at every IMU sample to this file")
+    ap.add_argument("--fault", action="append", default=[], metavar="KIND@T[:D]",
+                    help=f"inject a fault at simulated time T ({', '.join(FAULT_KINDS)})")
     args = ap.parse_args(argv)
+    try:
+        faults = tuple(ScheduledFault.parse(f) for f in args.fault)
+    except ValueError as exc:
+        ap.error(str(exc))
     parent = os.getppid()
     _die_with_parent()
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr,
@@ -217,7 +318,7 @@ def main(argv: list[str] | None = None) -> int:
         vehicle=vehicle, preset=preset, start_pos_w_m=(args.start[0], args.start[1], args.start[2]),
         seed=args.seed, clock=args.clock, link_dir=args.link_dir,
         wire_faults=WireFaults(corrupt_prob=args.corrupt_prob, seed=args.seed),
-        watchdog_s=args.watchdog_s,
+        watchdog_s=args.watchdog_s, faults=faults, truth_path=args.truth,
     ))
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

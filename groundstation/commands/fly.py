@@ -121,6 +121,7 @@ def flight_summary(outcome: Any, params: Any, session: str) -> dict[str, Any]:
         "preflight": [{"check": n, "pass": ok, "value": v} for n, ok, v in outcome.preflight],
     }
     rec = read_record(outcome.record_path)
+    out["state_source"] = rec.metadata.get("state", "ground-station estimate")
     if len(rec.rows):
         out.update(flight_metrics(rec.rows, min_spin_hz=params.rotors.min_spin_hz,
                                   max_spin_hz=params.rotors.max_spin_hz))
@@ -131,7 +132,7 @@ def metrics_table(summary: dict[str, Any]) -> None:
     keys = [k for k in summary if k.startswith(("all_", "udt_", "mdt_"))]
     if not keys:
         return
-    print("metrics (on the ground station's estimate):")
+    print(f"metrics (scored on the {summary['state_source']}):")
     for k in keys:
         v = summary[k]
         print(f"  {k:34s} {v:10.3f}" if isinstance(v, float) else f"  {k:34s} {v}")

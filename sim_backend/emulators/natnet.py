@@ -290,6 +290,12 @@ class NatNetServer:
 
     # ------------------------------------------------------------------ streaming
 
+    def occlude(self, frames: int) -> None:
+        """Occlude the vehicle's markers for the next ``frames`` frames (tracking invalid, as
+        Motive reports a rigid body it lost)."""
+        with self._stream_lock:
+            self._occluded_left = max(self._occluded_left, int(frames))
+
     def inject_frame_jump(self, frames: int) -> None:
         """Make the next frame number jump by ``frames`` (as after a Motive restart)."""
         with self._stream_lock:

@@ -37,13 +37,15 @@ def test_that_every_shipped_session_loads() -> None:
      "backend.clock: expected one of 'realtime', 'lockstep'; got 'fast'"),
     ("geofence_min_m: [-2.5, -2.5, -0.5]", "geofence_min_m: [-2.5, 2.6, -0.5]",
      "geofence_min_m", "safety.geofence_min_m[1]: must be below geofence_max_m[1] (2.5 m)"),
+    ("  seed: 1\n", "  seed: 1\n  faults: [mocap-dropout@x]\n", "faults",
+     "backend.faults[0]: fault 'mocap-dropout@x': T and DURATION are seconds"),
     ("failsafe_action: land", "failsafe_action: hover", "failsafe_action",
      "safety.failsafe_action: expected one of 'land', 'cut'; got 'hover'"),
     ("imu_rate_hz: 500.0", "imu_rate_hz: 5000.0", "imu_rate_hz",
      "backend.imu_rate_hz: expected a number >= 100 and <= 2000, got 5000.0"),
     ("  seed: 1\n", "  seed: 1\n  flight_ctrl_uri: /dev/ttyUSB0\n", "flight_ctrl_uri",
-     "backend.flight_ctrl_uri: unknown key; expected one of: clock, disturbances, imu_rate_hz, "
-     "kind, seed"),
+     "backend.flight_ctrl_uri: unknown key; expected one of: clock, corrupt_prob, disturbances, "
+     "faults, imu_rate_hz, kind, seed"),
 ])
 def test_that_a_malformed_session_gives_its_precise_message(
         tmp_path: Path, old: str, new: str, fragment: str, message: str) -> None:
