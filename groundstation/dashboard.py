@@ -34,6 +34,7 @@ ticks and the trail at ``trail_every`` ticks (the 3-D view does not need 500 Hz)
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import re
@@ -156,7 +157,7 @@ def blueprint() -> rrb.Blueprint:
                 ts("actuation: 0 UDT, 1 full, 2 MDT", "/actuation",
                    axis_y=rrb.ScalarAxis(range=(-0.2, 2.2)))),
             column_shares=[2, 3, 3]),
-        rrb.TimePanel(timeline="sim_time"),
+        rrb.TimePanel(timeline="sim_time", expanded=False),
         collapse_panels=True,
     )
 
@@ -194,6 +195,7 @@ class Dashboard:
         self.viewer_url: str | None = None
         self.grpc_url: str | None = None
         self.rows_logged = 0
+        self._t_last = 0.0
         self.events_logged = 0
         self._pose_every = max(1, pose_every)
         self._arrows_every = max(1, arrows_every)
@@ -267,9 +269,11 @@ class Dashboard:
                 static=True)
         rec.log("/world/reference", rr.TransformAxes3D(0.2), static=True)
         if self.metadata:
+            # not static: static data of an entity would hide all of its temporal events
             text = ", ".join(f"{k}: {v}" for k, v in self.metadata.items()
                              if isinstance(v, (str, int, float)))
-            rec.log("/events", rr.TextLog(f"flight: {text}", level="INFO"), static=True)
+            self.log_event(0.0, f"flight: {text}", level="INFO")
+            self.events_logged -= 1  # counts the caller's events only
 
     # -- data --------------------------------------------------------------------------------
     def log_rows(self, rows: np.ndarray) -> None:
@@ -277,6 +281,8 @@ class Dashboard:
         n = len(rows)
         if self._rec is None or n == 0:
             self.rows_logged += n
+            if n:
+                self._t_last = float(rows["t_s"][-1])
             return
         import rerun as rr
 
@@ -313,6 +319,7 @@ class Dashboard:
         self._log_world(rows, t, tick, s.pos_w_m)
         self._events_from_rows(s.t_s, s.actuation, np.asarray(rows["sat_mask"]))
         self.rows_logged += n
+        self._t_last = float(t[-1])
 
     def _sub(self, tick: npt.NDArray[np.int64], every: int) -> npt.NDArray[np.intp]:
         return np.flatnonzero(tick % every == 0)
@@ -391,6 +398,17 @@ class Dashboard:
             "/events", indexes=[rr.TimeColumn("sim_time", duration=[t])],
             columns=rr.TextLog.columns(text=[text], level=[level or _level(text)]))
 
+    def log_event_line(self, line: str) -> None:
+        """One line as the flight loop emits it (``"T.TTT s TEXT"``); a line without a time
+        stamp is placed at the newest row's time."""
+        parsed = parse_events(line)
+        if not parsed:
+            return
+        t, text = parsed[0]
+        if not _EVENT_RE.match(line):
+            t = self._t_last
+        self.log_event(t, text)
+
     def log_health(self, t_s: float, values: Mapping[str, float]) -> None:
         """Loop/link health values (e.g. ``loop_jitter_p99_ms``, ``link_loss_frac``) at
         ``t_s``; each name becomes the entity ``/health/<name>``."""
@@ -422,3 +440,40 @@ class Dashboard:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def drain_into_dashboard(ring_name: str, capacity: int, dashboard_args: dict[str, Any],
+                         events: Any, stop: Any, period_s: float = 0.1) -> None:
+    """Body of a telemetry process that feeds only the dashboard: drains the loop's
+    :class:`~groundstation.telemetry.TelemetryRing` of record rows and the event queue
+    (``"T.TTT s TEXT"`` strings) every ``period_s`` until ``stop`` is set and both are empty.
+    ``dashboard_args`` are :class:`Dashboard`'s keyword arguments plus ``mode``."""
+    import queue
+    import time
+
+    from groundstation.record import RECORD_DTYPE
+    from groundstation.telemetry import TelemetryRing
+
+    with contextlib.suppress(OSError):
+        os.nice(10)
+    ring = TelemetryRing(RECORD_DTYPE, capacity, name=ring_name)
+    args = dict(dashboard_args)
+    dash = Dashboard(args.pop("mode"), args.pop("rrd_path", None), **args)
+    try:
+        while True:
+            finished = stop.is_set()
+            rows = ring.drain()
+            dash.log_rows(rows)
+            while True:
+                try:  # at the end, wait briefly for lines still in the queue's pipe
+                    line = events.get(timeout=period_s) if finished else events.get_nowait()
+                except queue.Empty:
+                    break
+                dash.log_event_line(line)
+            if finished and not len(rows):
+                break
+            if not len(rows):
+                time.sleep(period_s)
+    finally:
+        dash.close()
+        ring.close()
