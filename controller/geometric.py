@@ -3,7 +3,10 @@
 One tick, :meth:`GeometricController.step`:
 
 1. position control: ``f_r = m (pdd_r + g e3) - K_p e_p - K_pi e_pi - K_v e_v`` with the
-   integral ``e_pi`` clipped per axis (anti-windup);
+   integral ``e_pi`` clipped per axis (anti-windup); with ``force_feedforward`` on (not in the
+   paper) the estimated external force ``F_ext`` is subtracted, clipped to
+   ``force_feedforward_limit_n``: the rotors then produce ``f_r - F_ext`` and the two add up
+   to ``f_r`` again, so a slowly varying unmodelled force no longer has to be integrated away;
 2. ``u_f``: ``f_r`` in the body frame, its lateral part saturated to the cylinder of radius
    ``r_xy(alpha)`` (:class:`controller.model.LateralBound`), the vertical part kept;
 3. ``R_d``: Algorithm 1 bisects the angle theta by which b3r turns towards f_r until the lateral
@@ -152,6 +155,8 @@ class GeometricController:
         self._pi_lim, self._ri_lim = c.pos_integral_limit_m_s, c.att_integral_limit_rad_s
         self._n_it = c.bisection_iterations
         self._ff = c.attitude_feedforward
+        self._force_ff = c.force_feedforward
+        self._force_ff_lim = c.force_feedforward_limit_n
         self._m = params.mass_kg
         self._g = params.gravity_m_s2
         self._j = params.inertia_diag_kg_m2
@@ -163,9 +168,13 @@ class GeometricController:
         """Forget the integrators (e.g. before a new takeoff)."""
         self.memory = ControllerMemory()
 
-    def step(self, t_s: float, state: VehicleState, ref: Reference, alpha_rad: float
-             ) -> Command:
-        """One tick: state + reference + measured tilt -> spin-rate command. Updates memory."""
+    def step(self, t_s: float, state: VehicleState, ref: Reference, alpha_rad: float,
+             force_ext_w_n: Vec3 | None = None) -> Command:
+        """One tick: state + reference + measured tilt -> spin-rate command. Updates memory.
+
+        ``force_ext_w_n``: the estimated external force (world, N); used only when the
+        vehicle's ``force_feedforward`` is on, ignored otherwise (and when non-finite).
+        """
         mem = self.memory
         dt = 0.0 if mem.last_t_s is None else min(max(t_s - mem.last_t_s, 0.0),
                                                   MAX_INTEGRATION_STEP_S)
@@ -184,6 +193,14 @@ class GeometricController:
             epi[i] = e if -lim[i] <= e <= lim[i] else math.copysign(lim[i], e)
             f_r[i] = self._m * ar[i] - kp[i] * ep - ki[i] * epi[i] - kv[i] * (v[i] - vr[i])
         f_r[2] += self._m * self._g
+        if self._force_ff and force_ext_w_n is not None:
+            ex, ey, ez = force_ext_w_n
+            n = math.sqrt(ex * ex + ey * ey + ez * ez)
+            if math.isfinite(n):
+                s = self._force_ff_lim / n if n > self._force_ff_lim else 1.0
+                f_r[0] -= s * ex
+                f_r[1] -= s * ey
+                f_r[2] -= s * ez
         fx, fy, fz = f_r
 
         # -- u_f: body-frame force with the cylindric lateral saturation ----------------------

@@ -104,6 +104,14 @@ class ControllerParams:
     attitude_feedforward: bool = spec(
         False, doc="add the reference angular velocity (not in the paper; paper-notes item 9)"
     )
+    force_feedforward: bool = spec(
+        False, doc="subtract the estimated external force from f_r (not in the paper; the "
+        "estimator's force observer); off = the paper's controller"
+    )
+    force_feedforward_limit_n: float = spec(
+        3.0, gt=0.0, le=100.0, doc="norm clip of the fed-forward force (N): bounds what a "
+        "wrong estimate, e.g. the ground's reaction before takeoff, can do"
+    )
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -17,8 +17,8 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any, Protocol
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -28,6 +28,7 @@ from controller.model import LateralBound, VehicleModel
 from controller.params import VehicleParams
 from controller.reference import (
     Quat,
+    Vec3,
     VehicleState,
     quat_from_axis_angle,
     quat_mul,
@@ -38,6 +39,9 @@ from sim_backend.disturbances import DisturbancePreset
 from sim_backend.sensors import NormalStream
 from sim_backend.simulator import FastHexSimulator
 from sim_backend.vehicle import ImuReading, PoseReading
+
+if TYPE_CHECKING:
+    from estimator import EstimatorConfig
 
 CONTROL_RATE_HZ = 500.0
 #: how often the auto tilt mode re-evaluates the look-ahead lateral demand
@@ -92,21 +96,56 @@ class TruthPlusNoise:
                             (w[0] + sw * n(), w[1] + sw * n(), w[2] + sw * n()))
 
 
+@runtime_checkable
+class ForceObservingSource(StateSource, Protocol):
+    """A state source with an external-force observer (the controller's force feed-forward).
+
+    The loop reports the body force it commanded (``command_issued``, after every controller
+    step) and asks for the estimate before the next one (``external_force_w_n``; ``None``:
+    nothing to feed forward yet).
+    """
+
+    def command_issued(self, force_b_n: Vec3) -> None:
+        ...
+
+    def external_force_w_n(self) -> Vec3 | None:
+        ...
+
+
 class UkfStateSource:
     """The project's UKF (:mod:`estimator`) fed with the simulated IMU and MoCap.
 
     Until the filter has initialised (a rest period on the ground with MoCap poses), the
-    controller gets the newest MoCap pose with zero velocity and the raw gyro.
+    controller gets the newest MoCap pose with zero velocity and the raw gyro. ``cfg`` tunes
+    the filter (its mass and gravity are replaced by the vehicle's).
+
+    The force observer gets the body force of the commanded rotor speeds at the measured tilt
+    (:meth:`command_issued`): the IMU sample of a tick measures what the previous tick's command
+    produced, so each command is handed to the next predict.
     """
 
-    def __init__(self, mass_kg: float, gravity_m_s2: float) -> None:
+    def __init__(self, mass_kg: float, gravity_m_s2: float,
+                 cfg: EstimatorConfig | None = None) -> None:
         from estimator import EstimatorConfig, Ukf
 
-        self.ukf = Ukf(EstimatorConfig(mass_kg=mass_kg, gravity_m_s2=gravity_m_s2))
+        base = cfg if cfg is not None else EstimatorConfig()
+        self.ukf = Ukf(replace(base, mass_kg=mass_kg, gravity_m_s2=gravity_m_s2))
         self._last_pose: PoseReading | None = None
+        self._force_cmd_b_n: Vec3 | None = None
+
+    def command_issued(self, force_b_n: Vec3) -> None:
+        self._force_cmd_b_n = force_b_n
+
+    def external_force_w_n(self) -> Vec3 | None:
+        """The observer's estimate (world, N); ``None`` before the filter has initialised or
+        while the observer is off."""
+        if not self.ukf.initialized or not self.ukf.cfg.force_observer:
+            return None
+        f = self.ukf.estimate().force_ext_w_n.tolist()
+        return (f[0], f[1], f[2])
 
     def update(self, t_s: float, imu: ImuReading, mocap: list[PoseReading]) -> VehicleState:
-        self.ukf.predict(imu.t_s, imu.gyro_rad_s, imu.accel_m_s2)
+        self.ukf.predict(imu.t_s, imu.gyro_rad_s, imu.accel_m_s2, self._force_cmd_b_n)
         for f in mocap:
             self.ukf.update_pose(f.t_s, f.pos_w_m, f.q_wb)
             self._last_pose = f
@@ -141,14 +180,19 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
                 duration_s: float | None = None,
                 state_source: StateSource | None = None,
                 tilt_override_rad: float | None = None,
-                preroll_s: float = 0.0) -> FlightResult:
+                preroll_s: float = 0.0,
+                on_tick: Callable[[float, FastHexSimulator], None] | None = None
+                ) -> FlightResult:
     """Fly ``mission`` in the simulator from rest on the ground, one row per tick to ``sink``.
 
     ``duration_s`` cuts the flight short (default: the mission plus 0.5 s on the ground).
     ``tilt_override_rad`` replaces the mission's alpha profile by a constant (comparisons).
     ``preroll_s`` runs the sensors and the state source that long on the ground with the motors
     off before the mission clock starts (an estimator's rest-period initialisation); the record
-    and the mission time start after it.
+    and the mission time start after it. A :class:`ForceObservingSource` is told every
+    commanded body force and its force estimate is handed to the controller (used when the
+    vehicle's ``force_feedforward`` is on). ``on_tick(t, sim)`` is called once per mission tick
+    after the state source, before the controller (analysis: the simulator's truth).
     Returns the metadata a record header should carry, with timing.
     """
     model = VehicleModel(params)
@@ -162,6 +206,7 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
     rng = np.random.default_rng([seed, 7])
     source: StateSource = state_source if state_source is not None else \
         TruthPlusNoise(sim.state, preset, rng)
+    observer = source if isinstance(source, ForceObservingSource) else None
     meta = {"mission": mission.name, "vehicle": params.name, "preset": preset.name,
             "seed": seed, "rate_hz": CONTROL_RATE_HZ,
             "measured_interval_s": mission.measured_interval_s()}
@@ -187,6 +232,8 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
         t = k * dt
         imu = sim.read_imu()
         est = source.update(t + t_offset, imu, sim.poll_mocap())
+        if on_tick is not None:
+            on_tick(t, sim)
         ref = mission.reference(t)
         alpha = sim.tilt_rad()
         margin = 0.0
@@ -200,7 +247,8 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
                 demand = mission.lateral_demand_n(
                     t, auto.horizon_s if auto is not None else 0.0, mass, g)
         sim.command_tilt_rad(planner.step(t, alpha_ref, demand, margin))
-        cmd = controller.step(t, est, ref, alpha)
+        cmd = controller.step(t, est, ref, alpha, None if observer is None
+                              else observer.external_force_w_n())
         done = t >= mission.duration_s
         spins = (0.0,) * 6 if done else cmd.spin_hz
         sim.command_rotor_speeds_hz(spins)
@@ -217,6 +265,8 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
             fz += f * a[2]
             tot += f
         eta = math.sqrt(fx * fx + fy * fy + fz * fz) / tot if tot > 0.0 else 1.0
+        if observer is not None:
+            observer.command_issued((fx, fy, fz))
         s = sim.state()
         mask = 0
         for i, flag in enumerate(cmd.saturated):
