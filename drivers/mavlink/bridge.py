@@ -79,7 +79,12 @@ from drivers.mavlink.frames import (
     q_normalized,
 )
 from drivers.mavlink.link import MavlinkCodec, UdpEndpoint, parse_mavlink_uri
-from drivers.mavlink.signing import SigningStats
+from drivers.mavlink.signing import (
+    SignatureVerifier,
+    SigningKeyError,
+    SigningStats,
+    load_signing_key,
+)
 from drivers.mocap.pose import MocapStats, PoseSample, StreamMonitor, TrackingStatus
 from groundstation.operator import (
     Arm,
@@ -270,6 +275,20 @@ class MavlinkBridge:
         self._stop = threading.Event()
         self._step_lock = threading.Lock()
 
+    @classmethod
+    def from_config(cls, config: MavlinkConfig, sink: OperatorCommandSink, *,
+                    params: Sequence[ParamSpec] = (),
+                    environ: dict[str, str] | None = None) -> MavlinkBridge:
+        """The bridge of a session: with signing on, the key is read from ``key_file`` or
+        the ``key_env`` variable (:class:`SigningKeyError` naming them when there is none)."""
+        key = None
+        if config.signing:
+            key = load_signing_key(config.key_file, config.key_env, environ)
+            if key is None:
+                raise SigningKeyError(
+                    config.uri, f"signing is on but no key: set ${config.key_env} or key_file")
+        return cls(config, sink, params=params, key=key)
+
     # -- the telemetry side -------------------------------------------------------------
 
     def publish(self, tel: VehicleTelemetry) -> None:
@@ -319,8 +338,11 @@ class MavlinkBridge:
             self._endpoint.wait_readable(wait_s)
         now = self._clock() if now_s is None else now_s
         with self._step_lock:
-            for data in self._endpoint.recv_all():
-                for msg in self._codec.decode(data):
+            for data, sender in self._endpoint.recv_all():
+                msgs = self._codec.decode(data)
+                if msgs:
+                    self._endpoint.adopt_peer(sender)
+                for msg in msgs:
                     try:
                         self._handle(msg, now)
                     except Exception:  # a bad message must not stop the link
@@ -388,6 +410,11 @@ class MavlinkBridge:
         t = self._gcs_heartbeat_t
         with self._lock:
             dropped = self._events_dropped
+        with self._step_lock:  # the counters move only inside step()
+            return self._stats_locked(now, v, t, dropped)
+
+    def _stats_locked(self, now: float, v: SignatureVerifier | None, t: float | None,
+                      dropped: int) -> BridgeStats:
         return BridgeStats(
             messages_out=dict(self._out), frames_in=self._codec.frames_in,
             corrupted_in=self._codec.corrupted, signing=None if v is None else v.stats(),

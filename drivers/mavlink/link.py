@@ -7,8 +7,9 @@ URI forms (the same spelling as ``mavutil.mavlink_connection``):
     vehicle-side form: the GCS listens (MAVProxy ``--master=udpin:HOST:PORT``, QGroundControl
     on 14550).
 ``udpin:HOST:PORT``
-    Bind HOST:PORT and answer the address that sent the newest datagram. Nothing is sent before
-    a peer has spoken (counted as ``no_peer_drops``).
+    Bind HOST:PORT and answer the address that sent the newest accepted frame (with signing
+    on, an unsigned datagram cannot redirect the telemetry). Nothing is sent before a peer has
+    spoken (counted as ``no_peer_drops``).
 
 Each datagram carries whole MAVLink frames; the codec still parses incrementally and counts
 anything that is not a valid frame (bad prefix, CRC, length) as corrupted and drops it.
@@ -103,9 +104,9 @@ class UdpEndpoint:
         readable, _, _ = select.select([self._sock], [], [], max(0.0, timeout_s))
         return bool(readable)
 
-    def recv_all(self) -> list[bytes]:
-        """Every datagram waiting now (never blocks)."""
-        out: list[bytes] = []
+    def recv_all(self) -> list[tuple[bytes, tuple[str, int]]]:
+        """Every datagram waiting now with its sender (never blocks)."""
+        out: list[tuple[bytes, tuple[str, int]]] = []
         while True:
             try:
                 data, addr = self._sock.recvfrom(MAX_DATAGRAM)
@@ -117,9 +118,13 @@ class UdpEndpoint:
                 if self._closed:
                     return out
                 raise TransportError(self.name, f"receive failed: {exc.strerror}") from None
-            if self.uri.mode == "udpin":
-                self.peer = (str(addr[0]), int(addr[1]))
-            out.append(data)
+            out.append((data, (str(addr[0]), int(addr[1]))))
+
+    def adopt_peer(self, addr: tuple[str, int]) -> None:
+        """In ``udpin`` mode, answer ``addr`` from now on. The caller decides who deserves it
+        (the bridge: a sender of at least one accepted, i.e. when signing, signed frame)."""
+        if self.uri.mode == "udpin":
+            self.peer = addr
 
     def send(self, data: bytes) -> bool:
         """Send one datagram; False (and counted) when there is no peer or the send failed.
