@@ -35,6 +35,7 @@ ticks and the trail at ``trail_every`` ticks (the 3-D view does not need 500 Hz)
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import os
 import re
@@ -54,6 +55,8 @@ if TYPE_CHECKING:
     import rerun.blueprint as rrb
 
     from controller.params import VehicleParams
+
+_log = logging.getLogger(__name__)
 
 MODES = ("spawn", "serve", "save", "off")
 APP_ID = "fasthex"
@@ -193,6 +196,8 @@ class Dashboard:
         self.rrd_path = Path(rrd_path) if rrd_path is not None else None
         self.metadata = dict(metadata or {})
         self.viewer_url: str | None = None
+        #: the error that switched the dashboard off, if any
+        self.error: str | None = None
         self.grpc_url: str | None = None
         self.rows_logged = 0
         self._t_last = 0.0
@@ -276,8 +281,25 @@ class Dashboard:
             self.events_logged -= 1  # counts the caller's events only
 
     # -- data --------------------------------------------------------------------------------
+    def _failed(self, what: str, exc: Exception) -> None:
+        """A dashboard fault never reaches the caller (the flight record must go on): the
+        dashboard switches itself off with one warning."""
+        self.error = f"{what}: {type(exc).__name__}: {exc}"
+        _log.warning("rerun dashboard off after an error in %s", self.error)
+        rec, self._rec = self._rec, None
+        if rec is not None:
+            with contextlib.suppress(Exception):
+                rec.disconnect()
+
     def log_rows(self, rows: np.ndarray) -> None:
         """Ship a block of consecutive flight-record rows (structured array)."""
+        try:
+            self._log_rows(rows)
+        except Exception as exc:
+            self.rows_logged += len(rows)
+            self._failed("log_rows", exc)
+
+    def _log_rows(self, rows: np.ndarray) -> None:
         n = len(rows)
         if self._rec is None or n == 0:
             self.rows_logged += n
@@ -394,9 +416,12 @@ class Dashboard:
         import rerun as rr
 
         t = 0.0 if not math.isfinite(t_s) else float(t_s)
-        self._rec.send_columns(
-            "/events", indexes=[rr.TimeColumn("sim_time", duration=[t])],
-            columns=rr.TextLog.columns(text=[text], level=[level or _level(text)]))
+        try:
+            self._rec.send_columns(
+                "/events", indexes=[rr.TimeColumn("sim_time", duration=[t])],
+                columns=rr.TextLog.columns(text=[text], level=[level or _level(text)]))
+        except Exception as exc:
+            self._failed("log_event", exc)
 
     def log_event_line(self, line: str) -> None:
         """One line as the flight loop emits it (``"T.TTT s TEXT"``); a line without a time
@@ -416,20 +441,27 @@ class Dashboard:
             return
         import rerun as rr
 
-        for name, v in values.items():
-            path = f"/health/{name}"
-            if name not in self._health_named:
-                self._rec.log(path, rr.SeriesLines(names=[name]), static=True)
-                self._health_named.add(name)
-            self._rec.send_columns(path, indexes=[rr.TimeColumn("sim_time", duration=[t_s])],
-                                   columns=rr.Scalars.columns(scalars=[float(v)]))
+        rec = self._rec
+        try:
+            for name, v in values.items():
+                path = f"/health/{name}"
+                if name not in self._health_named:
+                    rec.log(path, rr.SeriesLines(names=[name]), static=True)
+                    self._health_named.add(name)
+                rec.send_columns(path, indexes=[rr.TimeColumn("sim_time", duration=[t_s])],
+                                 columns=rr.Scalars.columns(scalars=[float(v)]))
+        except Exception as exc:
+            self._failed("log_health", exc)
 
     def close(self, timeout_s: float = 10.0) -> None:
         """Flush everything to the sinks and close the file (the viewer keeps running)."""
         if self._rec is None:
             return
         rec, self._rec = self._rec, None
-        rec.flush(timeout_sec=timeout_s)
+        try:
+            rec.flush(timeout_sec=timeout_s)
+        except RuntimeError as exc:  # a viewer that went away: the file sink still closes
+            _log.warning("rerun dashboard: %s", exc)
         if self.mode != "serve":
             rec.disconnect()
         else:

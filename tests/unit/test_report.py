@@ -168,3 +168,18 @@ def test_that_any_text_parses_into_events_without_raising(text: str) -> None:
 @given(st.binary())
 def test_that_any_bytes_decoded_leniently_parse_without_raising(data: bytes) -> None:
     parse_events(data.decode("utf-8", errors="replace"))
+
+
+def test_that_a_dashboard_error_switches_the_dashboard_off_instead_of_raising(
+        tmp_path: Path) -> None:
+    from groundstation.dashboard import Dashboard
+
+    dash = Dashboard("save", tmp_path / "x.rrd")
+    dash.log_rows(_rows(100, 50))
+    bad = np.zeros(3, dtype=[("t_s", "<f8")])  # not a flight-record row
+    dash.log_rows(bad)
+    assert dash.error is not None and dash.error.startswith("log_rows")
+    dash.log_rows(_rows(100, 50))  # off now: counted, not shipped, no exception
+    dash.log_event(1.0, "still fine")
+    dash.close()
+    assert dash.rows_logged == 203
