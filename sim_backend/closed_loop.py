@@ -1,10 +1,13 @@
 """In-process closed loop: mission -> tilt planner -> controller -> simulator, 500 Hz, no bytes.
 
-The controller acts on what a :class:`StateSource` makes of the sensors. Until the UKF is wired
-in, :class:`TruthPlusNoise` feeds it the simulator's true state plus white noise of the preset's
-``estimate_*`` standard deviations; a UKF adapter only has to implement ``update(t_s, imu,
+The controller acts on what a :class:`StateSource` makes of the sensors: ``update(t_s, imu,
 mocap_frames) -> VehicleState`` (the IMU sample of the tick and the MoCap frames that arrived
-since the previous tick).
+since the previous tick). :class:`UkfStateSource` runs the project's UKF on the simulated IMU
+and MoCap; the default :class:`TruthPlusNoise` feeds the simulator's true state plus white noise
+of the preset's ``estimate_*`` standard deviations. A source with a force observer
+(:class:`ForceObservingSource`) is told every commanded body force, and its estimate of the
+external force goes to the controller, which feeds it forward when the vehicle's
+``force_feedforward`` is on.
 
 The loop stops the motors when the mission is over and hands one row per tick to a
 :class:`RowSink`, in the field order of the flight record (``groundstation.record.RECORD_DTYPE``,
