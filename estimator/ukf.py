@@ -28,7 +28,10 @@ External-force observer: with ``force_observer`` on and the controller's command
 given to :meth:`Ukf.predict`, ``m R (accel - b_a) - R F_cmd`` is an instantaneous measurement of
 the unmodelled force in the world frame; a random-walk Kalman state filters it. It is kept out of
 the 15-state UKF on purpose: the accelerometer already drives the kinematic prediction there, and
-fusing the same samples a second time would count their noise twice.
+fusing the same samples a second time would count their noise twice. "Unmodelled" includes the
+rotors' own deviation from the thrust model (spread of c_f, misalignment), which looks exactly
+like an external pull; both are what the controller's ``force_feedforward`` should cancel
+(``StateEstimate.force_ext_w_n`` -> ``GeometricController.step(..., force_ext_w_n=)``).
 """
 
 from __future__ import annotations
