@@ -21,6 +21,8 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 os.environ["MAVLINK20"] = "1"  # before mavutil is imported (the v1 dialect would lose signing)
 import itertools
@@ -513,3 +515,34 @@ def test_that_faults_and_events_go_out_once_each_even_when_snapshots_are_overwri
     rig.bridge.step(rig.t + 1.0)
     assert rig.recv("HEARTBEAT").custom_mode == FlightPhase.CUT
     assert "STATUSTEXT" not in rig.inbox  # nothing sent twice
+
+
+def test_that_arbitrary_commands_and_setpoints_are_answered_and_never_break_the_bridge(
+        ) -> None:
+    rig = Rig(phase=FlightPhase.MISSION)
+    f32 = st.floats(width=32)  # NaN and infinities included
+    results = {int(r) for r in CommandResult}
+
+    @settings(max_examples=150, deadline=None)
+    @given(command=st.one_of(st.sampled_from([22, 21, 185, 400, 410, 511, 512, 520, 31010]),
+                             st.integers(0, 65535)),
+           params=st.lists(f32, min_size=7, max_size=7),
+           target=st.lists(f32, min_size=8, max_size=8),
+           name=st.text(max_size=16).map(lambda s: s.encode("utf-8")[:16]))
+    def exchange(command: int, params: list[float], target: list[float], name: bytes) -> None:
+        rig.gcs.mav.set_position_target_local_ned_send(
+            0, 1, 1, M.MAV_FRAME_LOCAL_NED, 0b1001_1111_1000, *target[:3], 0, 0, 0, 0, 0, 0,
+            target[3], 0)
+        rig.gcs.mav.set_attitude_target_send(0, 1, 1, 0, target[4:8], 0, 0, 0, 0.5)
+        rig.gcs.mav.att_pos_mocap_send(0, target[4:8], *target[:3])
+        rig.gcs.mav.param_set_send(1, 1, name, params[0], M.MAV_PARAM_TYPE_REAL32)
+        rig.gcs.mav.command_long_send(1, 1, command, 0, *params)
+        assert int(rig.serve_until_ack(command).result) in results
+
+    try:
+        exchange()
+        stats = rig.bridge.stats()
+        assert not [k for k in stats.ignored if k.startswith("ERROR_")]
+        assert sum(stats.command_results.values()) >= 150
+    finally:
+        rig.close()
