@@ -518,11 +518,17 @@ class MavlinkBridge:
             log.exception("%s: command sink failed on %s", self._endpoint.name, cmd)
             return CommandResult.FAILED
 
-    def _command_to_operator(self, command: int, p: list[float]) -> OperatorCommand | None:
+    def _command_to_operator(self, command: int, p: list[float]
+                             ) -> OperatorCommand | CommandResult | None:
+        """The operator command for ``command``; a result when it is malformed; None when
+        we do not support it."""
+        if command in (M.MAV_CMD_COMPONENT_ARM_DISARM, M.MAV_CMD_DO_FLIGHTTERMINATION) and \
+                not math.isfinite(p[0]):
+            return CommandResult.DENIED
         if command == M.MAV_CMD_COMPONENT_ARM_DISARM:
             if p[0] >= 0.5:
                 return Arm()
-            if round(p[1]) == FORCE_DISARM_MAGIC:
+            if _as_int(p[1]) == FORCE_DISARM_MAGIC:
                 return EmergencyStop("force disarm")
             return Disarm()
         if command == M.MAV_CMD_NAV_TAKEOFF:
@@ -543,10 +549,19 @@ class MavlinkBridge:
         else:  # COMMAND_INT: x, y are scaled integers, z a float
             p = [msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x), float(msg.y),
                  msg.z]
-        result = self._service_command(command, p)
-        if result is None:
-            cmd = self._command_to_operator(command, p)
-            result = CommandResult.UNSUPPORTED if cmd is None else self._submit(cmd)
+        try:
+            result = self._service_command(command, p)
+            if result is None:
+                cmd = self._command_to_operator(command, p)
+                if cmd is None:
+                    result = CommandResult.UNSUPPORTED
+                elif isinstance(cmd, CommandResult):
+                    result = cmd
+                else:
+                    result = self._submit(cmd)
+        except Exception:  # still answer: a GCS waiting for the ACK would retry forever
+            log.exception("%s: command %d failed", self._endpoint.name, command)
+            result = CommandResult.FAILED
         self._cmd_results[result.name] += 1
         self._send(M.MAVLink_command_ack_message(command, int(result), 0, 0,
                                                  msg.get_srcSystem(), msg.get_srcComponent()))
@@ -554,6 +569,9 @@ class MavlinkBridge:
     def _service_command(self, command: int, p: list[float]) -> CommandResult | None:
         """Commands about the link itself; None for operator commands."""
         R = CommandResult
+        if command in (M.MAV_CMD_REQUEST_MESSAGE, M.MAV_CMD_SET_MESSAGE_INTERVAL) and not (
+                math.isfinite(p[0]) and math.isfinite(p[1])):
+            return R.DENIED
         if command == M.MAV_CMD_REQUEST_MESSAGE:
             msg_id = int(p[0])
             if msg_id == M.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
@@ -680,6 +698,11 @@ class MavlinkBridge:
         self._send(M.MAVLink_file_transfer_protocol_message(
             0, msg.get_srcSystem(), msg.get_srcComponent(), list(payload)))
         self._ignored["FILE_TRANSFER_PROTOCOL"] += 1
+
+
+def _as_int(x: float) -> int | None:
+    """``round(x)``, or None for NaN and infinities (a GCS may send anything)."""
+    return round(x) if math.isfinite(x) else None
 
 
 def _param_name(raw: Any) -> str:
