@@ -64,7 +64,7 @@ import math
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -278,7 +278,7 @@ class MavlinkBridge:
     @classmethod
     def from_config(cls, config: MavlinkConfig, sink: OperatorCommandSink, *,
                     params: Sequence[ParamSpec] = (),
-                    environ: dict[str, str] | None = None) -> MavlinkBridge:
+                    environ: Mapping[str, str] | None = None) -> MavlinkBridge:
         """The bridge of a session: with signing on, the key is read from ``key_file`` or
         the ``key_env`` variable (:class:`SigningKeyError` naming them when there is none)."""
         key = None

@@ -31,7 +31,7 @@ import os
 import stat
 import struct
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -69,13 +69,13 @@ def key_from_text(text: str) -> bytes:
 
 def load_signing_key(key_file: str | os.PathLike[str] | None = None,
                      env_var: str | None = DEFAULT_KEY_ENV,
-                     environ: dict[str, str] | None = None) -> bytes | None:
+                     environ: Mapping[str, str] | None = None) -> bytes | None:
     """The signing key from ``key_file`` if given, else from ``env_var``; None if neither.
 
     Raises :class:`SigningKeyError` naming the file or variable when it is unreadable or empty.
     A key file readable by group or others is accepted with a warning.
     """
-    env = os.environ if environ is None else environ
+    env: Mapping[str, str] = os.environ if environ is None else environ
     if key_file is not None:
         path = Path(key_file)
         try:
