@@ -134,3 +134,10 @@ def test_that_a_parameter_name_longer_than_sixteen_characters_is_refused() -> No
         ParamSpec("A_VERY_LONG_NAME_X", 1.0, 0.0, 2.0)
     with pytest.raises(ValueError, match="outside"):
         ParamSpec("GAIN", 3.0, 0.0, 2.0)
+
+
+def test_that_the_phases_have_the_flight_state_machines_names_and_numbers() -> None:
+    # the bridge's custom_mode must mean the same thing as the session's state column
+    from groundstation.flight import FlightState
+
+    assert {p.name: int(p) for p in FlightPhase} == {s.name: int(s) for s in FlightState}
