@@ -187,7 +187,13 @@ class FlightStateMachine:
     def _check_failsafes(self, t_s: float, h: HealthSnapshot) -> None:
         lim = self.limits
         if h.imu_age_s > lim.imu_timeout_s or not h.imu_rate_ok:
-            self._fault(t_s, f"IMU stream lost (age {h.imu_age_s * 1e3:.0f} ms)")
+            if h.imu_age_s == float("inf"):
+                what = "Flight-Ctrl link lost"
+            elif h.imu_age_s > lim.imu_timeout_s:
+                what = f"IMU stream lost (age {h.imu_age_s * 1e3:.0f} ms)"
+            else:
+                what = "IMU rate below 80 % of the set rate"
+            self._fault(t_s, what)
             self._cut(t_s, "IMU/link lost: motors stop")
             return
         if self.state is FlightState.ARMED:

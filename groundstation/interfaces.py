@@ -37,6 +37,9 @@ class ImuLink(Protocol):
 
     def link_stats(self) -> LinkStats: ...
 
+    @property
+    def rx_errors(self) -> int: ...
+
 
 @runtime_checkable
 class TiltLink(Protocol):

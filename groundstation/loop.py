@@ -36,6 +36,7 @@ from controller.params import VehicleParams
 from controller.pipeline import ControlTick, FlightComputer, LandHere
 from controller.reference import VehicleState, rot_to_quat
 from drivers.dynamixel.device import ServoHealth as DxlHealth
+from drivers.errors import DeviceLostError, DriverError
 from drivers.mikrokopter.device import LinkHealth
 from estimator.types import HealthFlag
 from estimator.ukf import Ukf
@@ -56,6 +57,9 @@ log = logging.getLogger(__name__)
 ZERO6 = (0.0,) * 6
 #: ticks between checks of the IMU link's measured rate (the check costs ~20 us)
 LINK_CHECK_TICKS = 50
+#: lockstep: wall time after which a sample counts as lost, and the slice to check the link
+LOCKSTEP_LOST_S = 0.1
+LOCKSTEP_SLICE_S = 0.003
 #: ticks between two evaluations of the preflight checks (0.1 s at 500 Hz)
 PREFLIGHT_CHECK_TICKS = 50
 
@@ -83,6 +87,8 @@ class LoopOptions:
     min_preflight_s: float = 1.0
     max_start_offset_m: float = 0.3  # vehicle vs the mission's start position
     max_flight_s: float = 3600.0
+    #: operator requests at given loop times (rehearsals and tests), e.g. ((30.0, "stop"),)
+    scripted_requests: tuple[tuple[float, str], ...] = ()
 
 
 class FlightLoop:
@@ -111,8 +117,9 @@ class FlightLoop:
         self.preflight_report: list[tuple[str, bool, str]] = []
         self.status = ""  # one-line live status, refreshed every 50 ticks
         self._c_f = params.rotors.thrust_coeff_n_per_hz2
-        self._counters = {"telemetry_dropped": 0, "imu_timeouts": 0, "poses_fused": 0,
+        self._counters = {"telemetry_dropped": 0, "imu_missing": 0, "poses_fused": 0,
                           "servo_sync_failures": 0}
+        self._rx_errors = 0
 
     # -- the loop --------------------------------------------------------------------------
     def run(self) -> LoopResult:
@@ -120,7 +127,6 @@ class FlightLoop:
         sm = self.sm
         t0_s: float | None = None
         t_s = 0.0
-        last_imu_t_s = 0.0
         last_frame = -1
         last_pose_t_s = -math.inf
         takeoff_t_s: float | None = None
@@ -139,31 +145,60 @@ class FlightLoop:
         end_reason = "mission complete"
         n = 0
         timeout_s = self.sm.limits.imu_timeout_s
+        scripted = sorted(opts.scripted_requests)
+        last_spins: tuple[float, ...] = ZERO6
+        servo_health = ServoHealth.OK
+        missing = 0  # consecutive IMU samples not received
         while True:
-            imu = self.imu.wait_next(timeout_s)
+            try:
+                imu = self._next_imu(timeout_s)
+            except DeviceLostError as exc:
+                imu = None
+                lost_link = str(exc)
+            else:
+                lost_link = ""
             start_ns = time.perf_counter_ns()
             if imu is None:
-                self._counters["imu_timeouts"] += 1
-                age = (t_s - last_imu_t_s) + timeout_s * self._counters["imu_timeouts"]
-                if t0_s is None and self._counters["imu_timeouts"] * timeout_s < 2.0:
+                missing += 1
+                if opts.lockstep and not lost_link:
+                    # A lost or corrupted sample: the emulated board steps on every `w`, so
+                    # answer as a real host would at its control period (hold the output).
+                    age = missing * self.period_ns * 1e-9
+                else:
+                    age = missing * timeout_s
+                if t0_s is None and not lost_link and age < 2.0:
+                    if opts.lockstep:
+                        self.imu.send_rotor_speeds_hz(last_spins)
                     continue  # the stream is starting
-                h = self._health(age, False, math.inf, False, ServoHealth.OK, battery_v,
-                                 est_state, False, "mission", False)
+                if age <= timeout_s and not lost_link:
+                    self.imu.send_rotor_speeds_hz(last_spins)
+                    self._counters["imu_missing"] += 1
+                    continue
+                h = self._health(age if not lost_link else math.inf, False, math.inf, False,
+                                 ServoHealth.OK, battery_v, est_state, False, "mission", False)
                 sm.update(t_s, h)
                 self._act_on_transitions(prev_state, t_s, est_state)
                 prev_state = sm.state
-                if sm.state in (FlightState.DISARMED, FlightState.CUT) or t0_s is None:
-                    end_reason = "IMU stream lost" if t0_s is not None else "no IMU stream"
-                    self.imu.stop_motors()
-                    break
-                continue
-            self._counters["imu_timeouts"] = 0
+                if sm.state in (FlightState.PREFLIGHT, FlightState.ARMED, FlightState.TAKEOFF,
+                                FlightState.MISSION, FlightState.LANDING) and not lost_link:
+                    self.imu.send_rotor_speeds_hz(last_spins)
+                    continue
+                end_reason = (f"Flight-Ctrl link lost ({lost_link})" if lost_link else
+                              "IMU stream lost" if t0_s is not None else "no IMU stream")
+                self.event_sink(f"{t_s:.3f} s {end_reason}: motors stopped (the board's "
+                                "watchdog stops them too)")
+                if not lost_link:
+                    self._stop_motors()
+                if sm.state is not FlightState.DISARMED:
+                    sm.request(t_s, "cut")
+                    sm.update(t_s, h)
+                break
+            missing = 0
             t_ns = imu.seq * self.period_ns if opts.lockstep else imu.t_ns
             self.now_ns = t_ns
             if t0_s is None:  # lockstep: the board's own clock, sample k at k periods
                 t0_s = 0.0 if opts.lockstep else t_ns * 1e-9
             t_s = t_ns * 1e-9 - t0_s
-            last_imu_t_s = t_s
 
             # 2. newest pose and servo measurement
             if opts.lockstep:
@@ -180,9 +215,12 @@ class FlightLoop:
                     self._counters["poses_fused"] += 1
                     if mocap_start_pos is None:
                         mocap_start_pos = pose.pos_w_m
-            if opts.lockstep and n % opts.servo_sync_every == 0:
+            # a faulted servo is retried at 2 Hz only (each failed cycle costs a timeout)
+            sync_every = opts.servo_sync_every if servo_health is not ServoHealth.FAULT \
+                else 250
+            if opts.lockstep and n % sync_every == 0:
                 try:
-                    servo_state = self.tilt.sync_cycle(1.0)
+                    servo_state = self.tilt.sync_cycle(0.3)
                 except Exception as exc:  # a servo fault is a health state, not a crash
                     self._counters["servo_sync_failures"] += 1
                     log.debug("servo sync failed: %s", exc)
@@ -207,11 +245,15 @@ class FlightLoop:
 
             if n % LINK_CHECK_TICKS == 0:
                 stats = self.imu.link_stats()
-                link_ok = stats.health not in (LinkHealth.RATE_LOW, LinkHealth.LOST)
+                # in lockstep the loop itself sets the pace: a wall-clock rate means nothing
+                link_ok = stats.health is not LinkHealth.LOST and (
+                    opts.lockstep or stats.health is not LinkHealth.RATE_LOW)
                 battery = self.imu.battery()
                 battery_v = battery.voltage_v if battery is not None else math.inf
 
             # 4. operator requests, preflight and the state machine
+            while scripted and scripted[0][0] <= t_s:
+                self.requests.append(scripted.pop(0)[1])  # type: ignore[arg-type]
             while self.requests:
                 what = self.requests.popleft()
                 _, why = sm.request(t_s, what)
@@ -258,6 +300,7 @@ class FlightLoop:
             elif directive.motors_on:
                 spins = (self.params.rotors.min_spin_hz,) * 6  # idle while spinning up
             self.imu.send_rotor_speeds_hz(spins)
+            last_spins = spins
             if tick is not None:
                 force_cmd_b = self._body_force(alpha, tick.cmd.thrusts_n)
 
@@ -268,7 +311,7 @@ class FlightLoop:
             if n % 50 == 0:
                 self.status = self._status_line(t_s, tick, alpha, est_state, battery_v)
             if sm.finished:
-                self.imu.stop_motors()
+                self._stop_motors()
                 if sm.transitions and sm.transitions[-1].reason != "touchdown" and \
                         end_reason == "mission complete":
                     end_reason = sm.transitions[-1].reason
@@ -286,6 +329,30 @@ class FlightLoop:
         )
 
     # -- pieces ----------------------------------------------------------------------------
+    def _stop_motors(self) -> None:
+        """``x`` to the board; on a lost link the board's own watchdog has stopped them."""
+        try:
+            self.imu.stop_motors()
+        except DriverError as exc:
+            log.warning("cannot send the motor stop: %s", exc)
+    def _next_imu(self, timeout_s: float) -> Any:
+        """The next IMU sample, or None. In lockstep a lost sample is noticed at once when the
+        link reports a receive error (a corrupted frame), otherwise after ``LOCKSTEP_LOST_S``
+        of wall time; on hardware after ``timeout_s``."""
+        if not self.opts.lockstep:
+            return self.imu.wait_next(timeout_s)
+        waited = 0.0
+        while waited < LOCKSTEP_LOST_S:
+            imu = self.imu.wait_next(LOCKSTEP_SLICE_S)
+            if imu is not None:
+                return imu
+            waited += LOCKSTEP_SLICE_S
+            errors = self.imu.rx_errors
+            if errors != self._rx_errors:
+                self._rx_errors = errors
+                return None
+        return None
+
     def _act_on_transitions(self, prev: FlightState, t_s: float, est: VehicleState
                             ) -> LandHere | None:
         sm = self.sm
@@ -298,7 +365,7 @@ class FlightLoop:
             if tr.to_state is FlightState.ARMED:
                 self.imu.request_motor_start()
             elif tr.to_state in (FlightState.CUT, FlightState.DISARMED):
-                self.imu.stop_motors()
+                self._stop_motors()
             elif tr.to_state is FlightState.LANDING:
                 q = est.q_wb
                 yaw = math.atan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2))

@@ -149,7 +149,8 @@ class FlightSession:
     def __init__(self, cfg: SessionConfig, params: VehicleParams, mission: Mission, *,
                  record_path: Path, session_dir: Path | None = None,
                  echo_events: bool = True, corrupt_prob: float = 0.0,
-                 realtime_settings: bool = False) -> None:
+                 realtime_settings: bool = False,
+                 scripted_requests: tuple[tuple[float, str], ...] = ()) -> None:
         self.cfg = cfg
         self.params = params
         self.mission = mission
@@ -158,6 +159,7 @@ class FlightSession:
         self.echo_events = echo_events
         self.corrupt_prob = corrupt_prob
         self.realtime_settings = realtime_settings
+        self.scripted_requests = scripted_requests
         self._tmp = None if session_dir else tempfile.TemporaryDirectory(prefix="fasthex-")
         self.session_dir = session_dir or Path(self._tmp.name)  # type: ignore[union-attr]
         self.emulator: EmulatorProcess | None = None
@@ -240,7 +242,8 @@ class FlightSession:
                 params=self.params, mission=self.mission, imu=fc, tilt=servo, pose=mocap,
                 estimator=ukf, limits=cfg.safety.limits(),
                 options=LoopOptions(lockstep=lockstep, imu_rate_hz=backend.imu_rate_hz,
-                                    ground_z_m=self.mission.start_pos_w_m[2]),
+                                    ground_z_m=self.mission.start_pos_w_m[2],
+                                    scripted_requests=self.scripted_requests),
                 row_sink=row_sink, event_sink=event_sink)
             loop_box.append(loop)
             self.loop = loop

@@ -220,6 +220,7 @@ class EmulatedVehicleBackend:
         self.servo = EmulatedMX28(
             self.vehicle, lock=self.lock, link_path=link / "servo" if link else None,
             gear_ratio=opts.vehicle.tilt.worm_ratio, zero_offset_steps=SERVO_ZERO_OFFSET_STEPS,
+            step_on_wall_clock=opts.clock == "realtime",
         )
         self.mocap = NatNetServer(
             self.vehicle,

@@ -265,6 +265,14 @@ class FlightCtrlConfig:
     imu_stale_after_s: float = 0.01
     min_rate_fraction: float = 0.8
     rate_window_s: float = 0.5
+    max_gyro_step_rad_s: float = 0.25
+    """Largest plausible change of a gyro axis between two samples (the vehicle's angular
+    acceleration reaches ~60 rad/s^2, 0.12 rad/s per 2 ms). tk3 frames carry no checksum: a
+    larger jump is a corrupted byte (a high byte changes a value by >= 0.256 rad/s) and the
+    sample is dropped as implausible; 3 in a row are accepted (a real step)."""
+    max_accel_step_m_s2: float = 20.0
+    """The same for the accelerometer, wide enough for touchdown impacts and vibration (2 g per
+    sample): it catches the gross corruptions (high bits of the high byte)."""
     max_gyro_rad_s: float = 17.5
     """Gyro full scale (±1000 °/s); larger readings are corrupted and dropped."""
     max_battery_v: float = 60.0
@@ -420,6 +428,8 @@ class FlightCtrl:
         self._timebase = _ImuTimeBase(2_000_000)
         self._malformed = 0
         self._implausible = 0
+        self._last_imu_raw: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+        self._spike_run = 0
         self._imu_overwritten = 0
         self._frames_sent = 0
 
@@ -524,6 +534,13 @@ class FlightCtrl:
             self._imu_overwritten += self._imu_count - self._imu_taken - 1
             self._imu_taken = self._imu_count
             return self._imu
+
+    @property
+    def rx_errors(self) -> int:
+        """Received frames dropped so far (framing errors, malformed or implausible messages,
+        rejected sequence numbers): a cheap counter the loop can poll every tick."""
+        return (self._tk3.stats.frame_errors + self._malformed + self._implausible
+                + self._timebase.rejected)
 
     def latest_imu(self) -> ImuSample | None:
         with self._cond:
@@ -758,10 +775,22 @@ class FlightCtrl:
         self._cond.notify_all()
 
     def _on_imu(self, msg: mkm.ImuMessage, t_ns: int) -> None:
-        limit = self.config.max_gyro_rad_s
+        cfg = self.config
+        limit = cfg.max_gyro_rad_s
         if any(abs(g) > limit for g in msg.gyro_rad_s):
             self._implausible += 1
             return
+        last = self._last_imu_raw
+        if last is not None and self._spike_run < 3 and (
+                any(abs(a - b) > cfg.max_gyro_step_rad_s
+                    for a, b in zip(msg.gyro_rad_s, last[0], strict=True))
+                or any(abs(a - b) > cfg.max_accel_step_m_s2
+                       for a, b in zip(msg.accel_m_s2, last[1], strict=True))):
+            self._implausible += 1
+            self._spike_run += 1
+            return
+        self._spike_run = 0
+        self._last_imu_raw = (msg.gyro_rad_s, msg.accel_m_s2)
         stamped = self._timebase.accept(msg.seq, t_ns)
         if stamped is None:
             return

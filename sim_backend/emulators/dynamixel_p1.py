@@ -130,6 +130,7 @@ class EmulatedMX28:
         drive_clock: bool = False,
         time_scale: float = 1.0,
         model_baud: bool = True,
+        step_on_wall_clock: bool = True,
     ) -> None:
         if not 0 <= dxl_id <= MAX_ID:
             raise ValueError(f"Dynamixel ID {dxl_id} outside 0..{MAX_ID}")
@@ -147,6 +148,9 @@ class EmulatedMX28:
         self._full_load_rise_c = full_load_temp_rise_c
         self._drive_clock = drive_clock
         self._time_scale = time_scale
+        #: False in a lockstep backend: the motion is then integrated only when an instruction
+        #: arrives (at a fixed simulated time), never at wall-clock instants
+        self._step_on_wall_clock = step_on_wall_clock
 
         self._table = bytearray(TABLE_SIZE)
         self._factory_reset()
@@ -306,7 +310,8 @@ class EmulatedMX28:
             except (OSError, ValueError):
                 data = b""  # endpoint closed under us (unplug)
             with self._mutex:
-                self.step()
+                if data or self._step_on_wall_clock:
+                    self.step()
                 if data and not self._baud_matches(endpoint):
                     self.wrong_baud_bytes += len(data)
                     data = b""

@@ -1,0 +1,197 @@
+"""Flight sessions through the full byte path: the real drivers (FlightCtrl over a pty, TiltServo
+on dynamixel-sdk over a pty, NatNet over UDP), the UKF and the controller, against the emulated
+vehicle in its own process, in lockstep (deterministic, as fast as the CPU allows).
+
+Short missions keep the suite fast; the paper's full experiments are in test_fly_paper.py.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from controller.missions import Mission
+from groundstation.configs import load_mission, load_vehicle
+from groundstation.flight import FlightState
+from groundstation.record import read_record
+from groundstation.session import FlightSession, SessionOutcome
+from groundstation.session_config import load_session
+
+SHORT_MISSION = """\
+schema: fasthex.mission
+version: 1
+name: short-hover
+description: take off, hover through a tilt step, land (about 11 s)
+start_pos_w_m: [0.1, -0.1, 0.1]
+segments:
+  - kind: takeoff
+    duration_s: 2.5
+    height_m: 0.8
+    alpha: {kind: constant, value_deg: 0.0}
+  - kind: hold
+    duration_s: 1.0
+    measured: false
+  - kind: hold
+    duration_s: 4.0
+    alpha: {kind: steps, times_s: [0.0, 1.0], values_deg: [0.0, 10.0]}
+  - kind: land
+    duration_s: 3.0
+    alpha: {kind: constant, value_deg: 0.0}
+  - kind: hold
+    duration_s: 0.5
+    measured: false
+"""
+
+SESSION = """\
+schema: fasthex.session
+version: 1
+name: short-hover-emulated
+vehicle: fasthex
+mission: short-hover.yaml
+backend:
+  kind: emulated
+  clock: lockstep
+  seed: {seed}
+  disturbances: paper-calibrated
+  faults: [{faults}]
+  corrupt_prob: {corrupt}
+safety:
+  geofence_min_m: [-2.0, -2.0, -0.5]
+  geofence_max_m: [2.0, 2.0, {zmax}]
+  mocap_timeout_s: 1.0
+  imu_timeout_s: 0.1
+  failsafe_action: land
+  servo_fault_action: {servo_action}
+telemetry:
+  rerun: "off"
+"""
+
+
+def fly(tmp_path: Path, *, name: str = "flight", seed: int = 3, faults: str = "",
+        corrupt: float = 0.0, zmax: float = 2.5, servo_action: str = "hold",
+        requests: tuple[tuple[float, str], ...] = ()) -> SessionOutcome:
+    (tmp_path / "short-hover.yaml").write_text(SHORT_MISSION)
+    session_path = tmp_path / f"{name}.yaml"
+    session_path.write_text(SESSION.format(seed=seed, faults=faults, corrupt=corrupt,
+                                           zmax=zmax, servo_action=servo_action))
+    cfg = load_session(session_path)
+    session = FlightSession(cfg, load_vehicle("fasthex"),
+                            Mission(load_mission(tmp_path / "short-hover.yaml")),
+                            record_path=tmp_path / f"{name}.fhr", echo_events=False,
+                            scripted_requests=requests)
+    return session.run()
+
+
+def states(outcome: SessionOutcome) -> list[FlightState]:
+    return [t.to_state for t in outcome.result.transitions]
+
+
+def test_that_a_short_flight_is_flown_landed_and_recorded(tmp_path: Path) -> None:
+    out = fly(tmp_path)
+    assert states(out) == [FlightState.ARMED, FlightState.TAKEOFF, FlightState.MISSION,
+                           FlightState.LANDING, FlightState.DISARMED]
+    assert out.result.faults == []
+    assert all(ok for _, ok, _ in out.preflight)
+    rec = read_record(out.record_path)
+    assert rec.metadata["state"].startswith("true state")
+    rows = rec.rows
+    assert len(rows) == out.result.ticks
+    measured = rows[rows["measured"] > 0]
+    # lockstep: row k is IMU sample k, 2 ms apart (a touchdown's impact may make the driver drop
+    # up to 3 samples as implausible jumps, so look at the flight itself)
+    np.testing.assert_allclose(np.diff(measured["t_s"]), 0.002, atol=1e-9)
+    assert len(measured) > 1500
+    err_mm = 1e3 * np.linalg.norm(measured["pos_w_m"] - measured["pos_ref_w_m"], axis=1)
+    assert err_mm.mean() < 10.0  # paper Exp. 1: 8.7 mm mean
+    # the estimate the controller flew on agrees with the truth to the UKF's accuracy
+    est_err_mm = 1e3 * np.linalg.norm(measured["est_pos_w_m"] - measured["pos_w_m"], axis=1)
+    assert est_err_mm.mean() < 3.0
+    spins = rows["spin_cmd_hz"][rows["spin_cmd_hz"].max(axis=1) > 0]
+    assert spins.min() >= 16.0 - 1e-3 and spins.max() <= 102.0 + 1e-3
+    # tilt step to 10 deg was followed by the servo through the worm and the Cardan chain
+    assert math.degrees(measured["alpha_rad"].max()) == pytest.approx(10.0, abs=0.3)
+    events = out.events_path.read_text()
+    assert "PREFLIGHT -> ARMED" in events and "LANDING -> DISARMED: touchdown" in events
+
+
+def test_that_two_runs_with_the_same_seed_give_identical_records(tmp_path: Path) -> None:
+    a = fly(tmp_path, name="a", seed=5)
+    b = fly(tmp_path, name="b", seed=5)
+    ra, rb = read_record(a.record_path).rows, read_record(b.record_path).rows
+    assert len(ra) == len(rb) > 4000
+    assert ra.tobytes() == rb.tobytes()
+
+
+def test_that_a_short_mocap_dropout_does_not_end_the_flight(tmp_path: Path) -> None:
+    out = fly(tmp_path, faults="mocap-dropout@6.0:0.3")
+    assert states(out)[-2:] == [FlightState.LANDING, FlightState.DISARMED]
+    assert out.result.faults == []
+    assert "mission complete" in [t.reason for t in out.result.transitions]
+
+
+def test_that_a_long_mocap_dropout_lands_on_the_estimate(tmp_path: Path) -> None:
+    out = fly(tmp_path, faults="mocap-dropout@6.0:3.0")
+    reasons = [t.reason for t in out.result.transitions]
+    assert any(r.startswith("failsafe: MoCap lost for") for r in reasons)
+    assert states(out)[-1] is FlightState.DISARMED
+    rows = read_record(out.record_path).rows
+    assert rows["pos_w_m"][-1][2] < 0.15  # on the ground (O_B rests at 0.1 m)
+
+
+def test_that_a_cut_serial_link_stops_the_motors_and_ends_the_session(tmp_path: Path) -> None:
+    out = fly(tmp_path, faults="fc-disconnect@6.0")
+    assert out.result.end_reason.startswith("Flight-Ctrl link lost (")
+    assert states(out)[-2:] == [FlightState.CUT, FlightState.DISARMED]
+    assert out.result.faults == ["5.998 s: Flight-Ctrl link lost"]
+    events = out.events_path.read_text()
+    assert "MISSION -> CUT: IMU/link lost: motors stop" in events
+    assert "motors stopped (the board's watchdog stops them too)" in events
+    # nothing lost: the record runs up to the cut
+    rec = read_record(out.record_path)
+    assert rec.rows["t_s"][-1] == pytest.approx(5.996, abs=0.01)
+
+
+def test_that_one_percent_byte_corruption_does_not_stop_the_flight(tmp_path: Path) -> None:
+    out = fly(tmp_path, corrupt=0.01)
+    assert states(out)[-1] is FlightState.DISARMED
+    assert "mission complete" in [t.reason for t in out.result.transitions]
+    rows = read_record(out.record_path).rows
+    measured = rows[rows["measured"] > 0]
+    err_mm = 1e3 * np.linalg.norm(measured["pos_w_m"] - measured["pos_ref_w_m"], axis=1)
+    assert err_mm.mean() < 15.0
+
+
+def test_that_a_silent_servo_holds_the_tilt_and_the_flight_goes_on(tmp_path: Path) -> None:
+    out = fly(tmp_path, faults="servo-silent@5.0", servo_action="hold")
+    assert any("tilt servo fault: holding the measured tilt" in f for f in out.result.faults)
+    assert states(out)[-1] is FlightState.DISARMED
+
+
+def test_that_a_silent_servo_lands_when_configured_to(tmp_path: Path) -> None:
+    out = fly(tmp_path, faults="servo-silent@5.0", servo_action="land")
+    assert any(t.reason == "failsafe: tilt servo fault" for t in out.result.transitions)
+    assert states(out)[-1] is FlightState.DISARMED
+
+
+def test_that_a_geofence_breach_lands(tmp_path: Path) -> None:
+    out = fly(tmp_path, zmax=0.6)  # the mission climbs to 0.8 m
+    assert any(t.reason.startswith("failsafe: geofence breached") for t in out.result.transitions)
+    assert states(out)[-1] is FlightState.DISARMED
+    rows = read_record(out.record_path).rows
+    assert rows["pos_w_m"][:, 2].max() < 0.9
+
+
+def test_that_an_operator_stop_lands_and_a_second_one_cuts(tmp_path: Path) -> None:
+    # The requests arrive as the SIGINT handler of `fasthex fly` queues them, at fixed
+    # simulated times so the test is deterministic.
+    out_land = fly(tmp_path, name="land", requests=((7.0, "stop"),))
+    reasons = [t.reason for t in out_land.result.transitions]
+    assert "operator: land" in reasons and states(out_land)[-1] is FlightState.DISARMED
+    assert "mission complete" not in reasons
+    out_cut = fly(tmp_path, name="cut", requests=((7.0, "stop"), (7.5, "stop")))
+    reasons = [t.reason for t in out_cut.result.transitions]
+    assert "operator: second stop request" in reasons
+    assert states(out_cut)[-2:] == [FlightState.CUT, FlightState.DISARMED]
