@@ -65,6 +65,27 @@ class SessionOutcome:
     wall_time_s: float = 0.0
 
 
+@dataclass(frozen=True)
+class DeviceUris:
+    flight_ctrl: str
+    servo: str
+    mocap: str
+    servo_zero_steps: int
+
+
+def device_uris(cfg: SessionConfig, emulator: EmulatorProcess | None) -> DeviceUris:
+    """Where the three devices are: the session's URIs, or the running emulator's."""
+    backend = cfg.backend
+    if isinstance(backend, HardwareBackend):
+        return DeviceUris(backend.flight_ctrl_uri, backend.servo_uri, backend.mocap_uri, 0)
+    if emulator is None:
+        raise SessionError("the emulated backend is not running")
+    devs = emulator.devices
+    return DeviceUris(devs["flight-ctrl"], devs["servo"] + "?baud=1000000&id=1",
+                      f"natnet://{devs['mocap']}?local=127.0.0.1&body=fasthex",
+                      EMULATED_SERVO_ZERO_STEPS)
+
+
 class EmulatorProcess:
     """The emulated vehicle in a child process; its devices' addresses once ready."""
 
@@ -185,15 +206,9 @@ class FlightSession:
                 truth_path = self.session_dir / "truth.f64"
                 self.emulator = EmulatorProcess(backend, cfg.vehicle, self.mission.start_pos_w_m,
                                                 self.session_dir, self.corrupt_prob, truth_path)
-                devs = self.emulator.devices
-                fc_uri, servo_uri = devs["flight-ctrl"], devs["servo"] + "?baud=1000000&id=1"
-                mocap_uri = f"natnet://{devs['mocap']}?local=127.0.0.1&body=fasthex"
-                zero_steps = EMULATED_SERVO_ZERO_STEPS
-            else:
-                assert isinstance(backend, HardwareBackend)
-                fc_uri, servo_uri, mocap_uri = (backend.flight_ctrl_uri, backend.servo_uri,
-                                                backend.mocap_uri)
-                zero_steps = 0
+            uris = device_uris(cfg, self.emulator)
+            fc_uri, servo_uri, mocap_uri = uris.flight_ctrl, uris.servo, uris.mocap
+            zero_steps = uris.servo_zero_steps
             ring = TelemetryRing(RECORD_DTYPE, capacity=1 << 14)
             meta = {"session": cfg.name, "mission": self.mission.name,
                     "vehicle": self.params.name, "backend": backend.kind,

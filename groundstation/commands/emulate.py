@@ -1,0 +1,74 @@
+"""``fasthex emulate [SESSION]``: run only the emulated vehicle and say where its devices are.
+
+Prints one line per device (``flight-ctrl``, ``servo``: a pty path; ``mocap``: a NatNet UDP
+address), then runs until Ctrl-C. Any client can connect: this ground station
+(``fasthex fly`` with a hardware session naming these paths), ``fasthex mocap watch``, the
+Dynamixel Wizard, a serial terminal.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import tempfile
+import threading
+from pathlib import Path
+from typing import Any
+
+NAME = "emulate"
+HELP = "run the emulated FAST-Hex and print its device addresses (until Ctrl-C)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("session", nargs="?", default="exp1-emulated",
+                        help="emulated session name or YAML file (default exp1-emulated)")
+    parser.add_argument("--clock", choices=("realtime", "lockstep"), default="realtime",
+                        help="realtime (default: any client) or lockstep (steps per `w`)")
+    parser.add_argument("--link-dir", default=str(Path(tempfile.gettempdir()) / "fasthex"),
+                        help="directory for the stable device links (default: %(default)s)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from config import find_config
+    from controller.missions import Mission
+    from groundstation.cli import UserError
+    from groundstation.configs import load_mission
+    from groundstation.session import EmulatorProcess, SessionError, device_uris
+    from groundstation.session_config import EmulatedBackend, load_session, resolve_reference
+
+    path = find_config("sessions", args.session)
+    cfg = load_session(path)
+    if not isinstance(cfg.backend, EmulatedBackend):
+        raise UserError(f"{path}: not an emulated session (backend kind "
+                        f"{cfg.backend.kind!r})")
+    backend = replace(cfg.backend, clock=args.clock)
+    mission = Mission(load_mission(resolve_reference(path, cfg.mission)))
+    link_dir = Path(args.link_dir)
+    link_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        emulator = EmulatorProcess(backend, cfg.vehicle, mission.start_pos_w_m, link_dir)
+    except SessionError as exc:
+        raise UserError(str(exc)) from None
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: Any) -> None:
+        stop.set()
+
+    previous = signal.signal(signal.SIGINT, on_signal)
+    try:
+        uris = device_uris(replace(cfg, backend=backend), emulator)
+        print(f"flight-ctrl  pty  {emulator.devices['flight-ctrl']}  (tk3, {backend.clock})")
+        print(f"servo        pty  {emulator.devices['servo']}  (MX-28T, Protocol 1.0, id 1, "
+              "1 Mbaud)")
+        print(f"mocap        udp  {emulator.devices['mocap']}  (NatNet 4.1 command port; "
+              f"{uris.mocap})", flush=True)
+        print("running; Ctrl-C to stop", flush=True)
+        while not stop.wait(0.5):
+            if emulator.proc.poll() is not None:
+                raise UserError(f"the emulated vehicle exited (code {emulator.proc.returncode})")
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        emulator.close()
+    return 0
