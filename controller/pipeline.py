@@ -54,9 +54,12 @@ class FlightComputer:
         self._axes: list[tuple[float, float, float]] = []
 
     def step(self, t_s: float, state: VehicleState, alpha_rad: float,
-             ref: Reference | None = None, hold_tilt: bool = False) -> ControlTick:
+             ref: Reference | None = None, hold_tilt: bool = False,
+             force_ext_w_n: Vec3 | None = None) -> ControlTick:
         """One tick at mission time ``t_s``. ``ref`` overrides the mission's reference (a
-        failsafe landing); ``hold_tilt`` freezes the tilt command at the measured tilt."""
+        failsafe landing); ``hold_tilt`` freezes the tilt command at the measured tilt;
+        ``force_ext_w_n`` is the estimator's external force, fed forward when the vehicle's
+        ``force_feedforward`` is on."""
         mission = self.mission
         if ref is None:
             ref = mission.reference(t_s)
@@ -74,7 +77,7 @@ class FlightComputer:
                     t_s, auto.horizon_s if auto is not None else 0.0, self.params.mass_kg,
                     self.params.gravity_m_s2)
         alpha_cmd = self.planner.step(t_s, alpha_ref, demand, margin)
-        cmd = self.controller.step(t_s, state, ref, alpha_rad)
+        cmd = self.controller.step(t_s, state, ref, alpha_rad, force_ext_w_n)
         return ControlTick(ref, math.nan if alpha_ref is None else alpha_ref, alpha_cmd, cmd)
 
     def force_efficiency(self, alpha_rad: float, thrusts_n: tuple[float, ...]) -> float:

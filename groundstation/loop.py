@@ -240,6 +240,10 @@ class FlightLoop:
                               est.omega_b_rad_s.tolist())
                 est_state = VehicleState((p[0], p[1], p[2]), (v[0], v[1], v[2]),
                                          (q[0], q[1], q[2], q[3]), (w[0], w[1], w[2]))
+            force_ext = None
+            if est is not None:
+                fe = est.force_ext_w_n
+                force_ext = (float(fe[0]), float(fe[1]), float(fe[2]))
             estimator_ok = est is not None and not (
                 est.health.flags & (HealthFlag.DIVERGED | HealthFlag.NOT_INITIALIZED))
 
@@ -288,11 +292,12 @@ class FlightLoop:
             spins = ZERO6
             tick = None
             if directive.reference is ReferenceSource.MISSION:
-                tick = self.computer.step(tm, est_state, alpha, hold_tilt=directive.hold_tilt)
+                tick = self.computer.step(tm, est_state, alpha, hold_tilt=directive.hold_tilt,
+                                          force_ext_w_n=force_ext)
             elif directive.reference is ReferenceSource.LAND_HERE and land_here is not None:
                 ref = land_here.reference(t_s, alpha)
-                tick = self.computer.step(tm, est_state, alpha, ref=ref,
-                                          hold_tilt=True)
+                tick = self.computer.step(tm, est_state, alpha, ref=ref, hold_tilt=True,
+                                          force_ext_w_n=force_ext)
             if tick is not None and directive.motors_on:
                 spins = tick.cmd.spin_hz
                 if not directive.hold_tilt:
