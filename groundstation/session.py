@@ -132,25 +132,38 @@ class EmulatorProcess:
 
 
 def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
-                    events: Any, events_path: str, echo_events: bool, stop: Any) -> None:
-    """The telemetry process: ring -> flight record, event queue -> events file (and stderr)."""
+                    events: Any, events_path: str, echo_events: bool, stop: Any,
+                    dashboard_mode: str, rrd_path: str, params: VehicleParams) -> None:
+    """The telemetry process: ring -> flight record (+ rerun dashboard), event queue -> events
+    file (and stderr). Runs at a lower priority; the loop never waits for it."""
     with contextlib.suppress(OSError):
         os.nice(10)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the session ends us, not Ctrl-C
     ring = TelemetryRing(RECORD_DTYPE, name=ring_name)
     writer = RecordWriter(record_path, metadata, keep_in_memory=False)
+    dash = None
+    if dashboard_mode != "off":
+        from groundstation.dashboard import Dashboard
+
+        dash = Dashboard(dashboard_mode, rrd_path, metadata=metadata, params=params)
+        if dash.viewer_url:
+            print(f"dashboard: {dash.viewer_url}", file=sys.stderr, flush=True)
     with open(events_path, "a", encoding="utf-8") as ev:
         while True:
             finished = stop.is_set()
             rows = ring.drain()
             if len(rows):
                 writer.append_block(rows)
+                if dash is not None:
+                    dash.log_rows(rows)
             while True:
                 try:
                     text = events.get_nowait()
                 except queue.Empty:
                     break
                 ev.write(text + "\n")
+                if dash is not None:
+                    dash.log_event_line(text)
                 if echo_events:
                     print(text, file=sys.stderr, flush=True)
             ev.flush()
@@ -158,9 +171,13 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
                 rest = ring.drain()
                 if len(rest):
                     writer.append_block(rest)
+                    if dash is not None:
+                        dash.log_rows(rest)
                 break
             time.sleep(0.05)
     writer.close()
+    if dash is not None:
+        dash.close()
     ring.close()
 
 
@@ -171,7 +188,8 @@ class FlightSession:
                  record_path: Path, session_dir: Path | None = None,
                  echo_events: bool = True, corrupt_prob: float = 0.0,
                  realtime_settings: bool = False,
-                 scripted_requests: tuple[tuple[float, str], ...] = ()) -> None:
+                 scripted_requests: tuple[tuple[float, str], ...] = (),
+                 dashboard: str | None = None) -> None:
         self.cfg = cfg
         self.params = params
         self.mission = mission
@@ -181,10 +199,18 @@ class FlightSession:
         self.corrupt_prob = corrupt_prob
         self.realtime_settings = realtime_settings
         self.scripted_requests = scripted_requests
+        self.dashboard = dashboard or cfg.telemetry.rerun
         self._tmp = None if session_dir else tempfile.TemporaryDirectory(prefix="fasthex-")
         self.session_dir = session_dir or Path(self._tmp.name)  # type: ignore[union-attr]
         self.emulator: EmulatorProcess | None = None
         self.loop: FlightLoop | None = None
+
+    def _dashboard_mode(self) -> str:
+        if self.dashboard != "auto":
+            return self.dashboard
+        from groundstation.dashboard import default_mode
+
+        return default_mode()
 
     def run(self) -> SessionOutcome:
         cfg = self.cfg
@@ -221,7 +247,9 @@ class FlightSession:
             self.events_path.write_text("")
             tel = ctx.Process(target=_telemetry_main, name="fasthex-telemetry",
                               args=(ring.name, str(self.record_path), meta, events,
-                                    str(self.events_path), self.echo_events, stop))
+                                    str(self.events_path), self.echo_events, stop,
+                                    self._dashboard_mode(),
+                                    str(self.record_path.with_suffix(".rrd")), self.params))
             tel.start()
 
             fc = FlightCtrl.open(fc_uri, FlightCtrlConfig(imu_rate_hz=backend.imu_rate_hz))

@@ -33,6 +33,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no live status or event lines")
     parser.add_argument("--realtime-settings", action="store_true",
                         help="try CPU pinning, SCHED_FIFO and a frozen GC (realtime only)")
+    parser.add_argument("--rerun", choices=("spawn", "serve", "save", "off", "auto"),
+                        default=None, help="live dashboard: spawn the viewer, serve the web "
+                        "viewer, save RECORD.rrd, or off (default: the session's; auto = spawn "
+                        "with a display, else save)")
     parser.add_argument("--corrupt-prob", type=float, default=0.0,
                         help="emulated backend: byte corruption on the Flight-Ctrl link")
 
@@ -66,7 +70,8 @@ def run(args: argparse.Namespace) -> int:
     session = FlightSession(cfg, params, mission, record_path=record,
                             echo_events=not args.quiet and not args.json,
                             corrupt_prob=args.corrupt_prob,
-                            realtime_settings=args.realtime_settings)
+                            realtime_settings=args.realtime_settings,
+                            dashboard=args.rerun)
     stop_status = threading.Event()
 
     def on_sigint(signum: int, frame: Any) -> None:
