@@ -24,6 +24,7 @@ from __future__ import annotations
 import collections
 import logging
 import math
+import queue
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -116,6 +117,10 @@ class FlightLoop:
         self.now_ns = 0
         self.preflight_report: list[tuple[str, bool, str]] = []
         self.status = ""  # one-line live status, refreshed every 50 ticks
+        #: optional shared block (state, preflight ok, battery V) for operator surfaces
+        self.shared_status: Any = None
+        #: optional queue of operator requests from another process (MAVLink)
+        self.command_queue: Any = None
         self._c_f = params.rotors.thrust_coeff_n_per_hz2
         self._counters = {"telemetry_dropped": 0, "imu_missing": 0, "poses_fused": 0,
                           "servo_sync_failures": 0}
@@ -248,6 +253,7 @@ class FlightLoop:
                 est.health.flags & (HealthFlag.DIVERGED | HealthFlag.NOT_INITIALIZED))
 
             if n % LINK_CHECK_TICKS == 0:
+                self._exchange_with_operators(battery_v)
                 stats = self.imu.link_stats()
                 # in lockstep the loop itself sets the pace: a wall-clock rate means nothing
                 link_ok = stats.health is not LinkHealth.LOST and (
@@ -334,6 +340,21 @@ class FlightLoop:
         )
 
     # -- pieces ----------------------------------------------------------------------------
+    def _exchange_with_operators(self, battery_v: float) -> None:
+        """Every 0.1 s: publish the state for operator surfaces, take their requests."""
+        if self.shared_status is not None:
+            self.shared_status[0] = float(int(self.sm.state))
+            self.shared_status[1] = float(all(ok for _, ok, _ in self.preflight_report)
+                                          and bool(self.preflight_report))
+            self.shared_status[2] = battery_v if math.isfinite(battery_v) else math.nan
+        q = self.command_queue
+        if q is not None:
+            while True:
+                try:
+                    self.requests.append(q.get_nowait())
+                except queue.Empty:
+                    break
+
     def _stop_motors(self) -> None:
         """``x`` to the board; on a lost link the board's own watchdog has stopped them."""
         try:

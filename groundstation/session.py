@@ -133,7 +133,8 @@ class EmulatorProcess:
 
 def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
                     events: Any, events_path: str, echo_events: bool, stop: Any,
-                    dashboard_mode: str, rrd_path: str, params: VehicleParams) -> None:
+                    dashboard_mode: str, rrd_path: str, params: VehicleParams,
+                    mavlink_uri: str = "", status: Any = None, commands: Any = None) -> None:
     """The telemetry process: ring -> flight record (+ rerun dashboard), event queue -> events
     file (and stderr). Runs at a lower priority; the loop never waits for it."""
     with contextlib.suppress(OSError):
@@ -141,6 +142,7 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the session ends us, not Ctrl-C
     ring = TelemetryRing(RECORD_DTYPE, name=ring_name)
     writer = RecordWriter(record_path, metadata, keep_in_memory=False)
+    pending_events: list[str] = []
     dash = None
     if dashboard_mode != "off":
         from groundstation.dashboard import Dashboard
@@ -148,6 +150,7 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
         dash = Dashboard(dashboard_mode, rrd_path, metadata=metadata, params=params)
         if dash.viewer_url:
             print(f"dashboard: {dash.viewer_url}", file=sys.stderr, flush=True)
+    bridge = _start_mavlink(mavlink_uri, params, status, commands) if mavlink_uri else None
     with open(events_path, "a", encoding="utf-8") as ev:
         while True:
             finished = stop.is_set()
@@ -164,9 +167,14 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
                 ev.write(text + "\n")
                 if dash is not None:
                     dash.log_event_line(text)
+                if mavlink_uri:
+                    pending_events.append(text)
                 if echo_events:
                     print(text, file=sys.stderr, flush=True)
             ev.flush()
+            if bridge is not None and len(rows):
+                bridge.publish(_vehicle_telemetry(rows[-1], status, pending_events))
+                pending_events = []
             if finished:
                 rest = ring.drain()
                 if len(rest):
@@ -178,7 +186,88 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
     writer.close()
     if dash is not None:
         dash.close()
+    if bridge is not None:
+        bridge.close()
     ring.close()
+
+
+# -- MAVLink: the bridge lives in the telemetry process; commands go back to the loop --------
+#: shared status block written by the loop: flight state, preflight ok, battery voltage (V)
+STATUS_STATE, STATUS_PREFLIGHT, STATUS_BATTERY = 0, 1, 2
+
+
+class _LoopCommandSink:
+    """Decides MAVLink commands on the loop's latest state (``groundstation.operator.decide``)
+    and forwards the accepted ones to the loop as operator requests."""
+
+    def __init__(self, status: Any, commands: Any, max_tilt_rad: float) -> None:
+        self.status, self.commands, self.max_tilt_rad = status, commands, max_tilt_rad
+
+    def submit(self, cmd: Any) -> Any:
+        from groundstation import operator as op
+
+        phase = op.FlightPhase(int(self.status[STATUS_STATE]))
+        result = op.decide(cmd, phase, preflight_ok=bool(self.status[STATUS_PREFLIGHT]),
+                           max_tilt_rad=self.max_tilt_rad)
+        request = {op.Arm: "arm", op.Disarm: "disarm", op.Land: "land",
+                   op.EmergencyStop: "cut"}.get(type(cmd))
+        if result is op.CommandResult.ACCEPTED:
+            if request is None:  # the session flies its mission file: no takeoff/setpoints
+                return op.CommandResult.UNSUPPORTED
+            with contextlib.suppress(queue.Full):
+                self.commands.put_nowait(request)
+        return result
+
+
+def _start_mavlink(uri: str, params: VehicleParams, status: Any, commands: Any) -> Any:
+    from drivers.mavlink.bridge import MavlinkBridge, MavlinkConfig
+    from groundstation.operator import operator_params
+
+    c = params.controller
+    bridge = MavlinkBridge.from_config(
+        MavlinkConfig(uri=uri), _LoopCommandSink(status, commands, params.tilt.max_tilt_rad),
+        params=operator_params(kp_pos=c.kp_pos, kv_pos=c.kv_pos, ki_pos=c.ki_pos,
+                               kr_att=c.kr_att, kw_att=c.kw_att,
+                               max_tilt_deg=params.tilt.max_tilt_deg,
+                               max_tilt_rate_deg_s=params.tilt.max_rate_deg_s))
+    bridge.start()
+    return bridge
+
+
+def _vehicle_telemetry(row: Any, status: Any, events: list[str]) -> Any:
+    from groundstation import operator as op
+
+    phase = op.FlightPhase(int(status[STATUS_STATE]))
+
+    def vec(v: Any) -> tuple[float, ...]:
+        return tuple(float(x) for x in v)
+
+    return op.VehicleTelemetry(
+        t_s=float(row["t_s"]), phase=phase,
+        armed=phase in (op.FlightPhase.ARMED, op.FlightPhase.TAKEOFF, op.FlightPhase.MISSION,
+                        op.FlightPhase.LANDING),
+        pos_w_m=vec(row["est_pos_w_m"]), vel_w_m_s=vec(row["vel_w_m_s"]),  # type: ignore[arg-type]
+        q_wb=vec(row["est_q_wb"]), omega_b_rad_s=vec(row["omega_b_rad_s"]),  # type: ignore[arg-type]
+        rotor_speeds_hz=vec(row["spin_hz"]), tilt_rad=float(row["alpha_rad"]),  # type: ignore[arg-type]
+        battery_v=float(status[STATUS_BATTERY]),
+        health=op.SensorHealth(preflight_ok=bool(status[STATUS_PREFLIGHT])),
+        events=tuple(_status_event(e, float(row["t_s"])) for e in events),
+    )
+
+
+def _status_event(line: str, t_default: float) -> Any:
+    """``"T.TTT s TEXT"`` (or ``"FAULT T.TTT s: TEXT"``) -> a StatusEvent."""
+    from groundstation import operator as op
+
+    text = line.removeprefix("FAULT ")
+    head, _, rest = text.partition(" s ")
+    try:
+        t_s = float(head)
+    except ValueError:
+        t_s, rest = t_default, text
+    bad = line.startswith("FAULT") or "failsafe" in line or "lost" in line
+    return op.StatusEvent(t_s, rest.lstrip(": ") if rest else text,
+                          op.Severity.WARNING if bad else op.Severity.INFO)
 
 
 class FlightSession:
@@ -189,7 +278,7 @@ class FlightSession:
                  echo_events: bool = True, corrupt_prob: float = 0.0,
                  realtime_settings: bool = False,
                  scripted_requests: tuple[tuple[float, str], ...] = (),
-                 dashboard: str | None = None) -> None:
+                 dashboard: str | None = None, mavlink: str | None = None) -> None:
         self.cfg = cfg
         self.params = params
         self.mission = mission
@@ -200,6 +289,7 @@ class FlightSession:
         self.realtime_settings = realtime_settings
         self.scripted_requests = scripted_requests
         self.dashboard = dashboard or cfg.telemetry.rerun
+        self.mavlink_uri = mavlink if mavlink is not None else cfg.telemetry.mavlink
         self._tmp = None if session_dir else tempfile.TemporaryDirectory(prefix="fasthex-")
         self.session_dir = session_dir or Path(self._tmp.name)  # type: ignore[union-attr]
         self.emulator: EmulatorProcess | None = None
@@ -224,6 +314,8 @@ class FlightSession:
         ctx = mp.get_context("spawn")
         stop = ctx.Event()
         events: Any = ctx.Queue(maxsize=10_000)
+        status: Any = ctx.Array("d", 3, lock=False)
+        commands: Any = ctx.Queue(maxsize=100)
         wall0 = time.perf_counter()
         settings: dict[str, str] = {}
         truth_path: Path | None = None
@@ -249,7 +341,8 @@ class FlightSession:
                               args=(ring.name, str(self.record_path), meta, events,
                                     str(self.events_path), self.echo_events, stop,
                                     self._dashboard_mode(),
-                                    str(self.record_path.with_suffix(".rrd")), self.params))
+                                    str(self.record_path.with_suffix(".rrd")), self.params,
+                                    self.mavlink_uri, status, commands))
             tel.start()
 
             fc = FlightCtrl.open(fc_uri, FlightCtrlConfig(imu_rate_hz=backend.imu_rate_hz))
@@ -288,6 +381,8 @@ class FlightSession:
                                     ground_z_m=self.mission.start_pos_w_m[2],
                                     scripted_requests=self.scripted_requests),
                 row_sink=row_sink, event_sink=event_sink)
+            loop.shared_status = status
+            loop.command_queue = commands
             loop_box.append(loop)
             self.loop = loop
             if self.realtime_settings and not lockstep:

@@ -37,6 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         default=None, help="live dashboard: spawn the viewer, serve the web "
                         "viewer, save RECORD.rrd, or off (default: the session's; auto = spawn "
                         "with a display, else save)")
+    parser.add_argument("--mavlink", default=None, metavar="URI",
+                        help="MAVLink endpoint for a GCS, e.g. udpout:127.0.0.1:14550 "
+                        "(default: the session's; '' to switch off)")
     parser.add_argument("--corrupt-prob", type=float, default=0.0,
                         help="emulated backend: byte corruption on the Flight-Ctrl link")
 
@@ -71,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
                             echo_events=not args.quiet and not args.json,
                             corrupt_prob=args.corrupt_prob,
                             realtime_settings=args.realtime_settings,
-                            dashboard=args.rerun)
+                            dashboard=args.rerun, mavlink=args.mavlink)
     stop_status = threading.Event()
 
     def on_sigint(signum: int, frame: Any) -> None:

@@ -1,0 +1,87 @@
+"""Helpers shared by the flight-session integration tests (short missions, session files)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from controller.missions import Mission
+from controller.params import VehicleParams
+from groundstation.configs import load_mission, load_vehicle
+from groundstation.session import FlightSession, SessionOutcome
+from groundstation.session_config import SessionConfig, load_session
+
+SHORT_MISSION = """\
+schema: fasthex.mission
+version: 1
+name: short-hover
+description: take off, hover through a tilt step, land (about 11 s)
+start_pos_w_m: [0.1, -0.1, 0.1]
+segments:
+  - kind: takeoff
+    duration_s: 2.5
+    height_m: 0.8
+    alpha: {kind: constant, value_deg: 0.0}
+  - kind: hold
+    duration_s: 1.0
+    measured: false
+  - kind: hold
+    duration_s: 4.0
+    alpha: {kind: steps, times_s: [0.0, 1.0], values_deg: [0.0, 10.0]}
+  - kind: land
+    duration_s: 3.0
+    alpha: {kind: constant, value_deg: 0.0}
+  - kind: hold
+    duration_s: 0.5
+    measured: false
+"""
+
+SESSION = """\
+schema: fasthex.session
+version: 1
+name: short-hover-emulated
+vehicle: fasthex
+mission: short-hover.yaml
+backend:
+  kind: emulated
+  clock: lockstep
+  seed: {seed}
+  disturbances: paper-calibrated
+  faults: [{faults}]
+  corrupt_prob: {corrupt}
+safety:
+  geofence_min_m: [-2.0, -2.0, -0.5]
+  geofence_max_m: [2.0, 2.0, {zmax}]
+  mocap_timeout_s: 1.0
+  imu_timeout_s: 0.1
+  failsafe_action: land
+  servo_fault_action: {servo_action}
+telemetry:
+  rerun: "off"
+"""
+
+
+def fly(tmp_path: Path, *, name: str = "flight", seed: int = 3, faults: str = "",
+        corrupt: float = 0.0, zmax: float = 2.5, servo_action: str = "hold",
+        requests: tuple[tuple[float, str], ...] = ()) -> SessionOutcome:
+    (tmp_path / "short-hover.yaml").write_text(SHORT_MISSION)
+    session_path = tmp_path / f"{name}.yaml"
+    session_path.write_text(SESSION.format(seed=seed, faults=faults, corrupt=corrupt,
+                                           zmax=zmax, servo_action=servo_action))
+    cfg = load_session(session_path)
+    session = FlightSession(cfg, load_vehicle("fasthex"),
+                            Mission(load_mission(tmp_path / "short-hover.yaml")),
+                            record_path=tmp_path / f"{name}.fhr", echo_events=False,
+                            scripted_requests=requests)
+    return session.run()
+
+
+
+
+def short_session(tmp_path: Path, *, name: str = "flight", seed: int = 3,
+                  mission: str = SHORT_MISSION) -> tuple[SessionConfig, VehicleParams, Mission]:
+    (tmp_path / "short-hover.yaml").write_text(mission)
+    session_path = tmp_path / f"{name}.yaml"
+    session_path.write_text(SESSION.format(seed=seed, faults="", corrupt=0.0, zmax=2.5,
+                                           servo_action="hold"))
+    return (load_session(session_path), load_vehicle("fasthex"),
+            Mission(load_mission(tmp_path / "short-hover.yaml")))
