@@ -152,8 +152,10 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
             print(f"dashboard: {dash.viewer_url}", file=sys.stderr, flush=True)
     bridge = _start_mavlink(mavlink_uri, params, status, commands) if mavlink_uri else None
     with open(events_path, "a", encoding="utf-8") as ev:
+        parent = os.getppid()
         while True:
-            finished = stop.is_set()
+            # the session ended, or died (kill -9): either way, write out what the ring holds
+            finished = stop.is_set() or os.getppid() != parent
             rows = ring.drain()
             if len(rows):
                 writer.append_block(rows)

@@ -340,9 +340,30 @@ def main(argv: list[str] | None = None) -> int:
         while not stop.wait(0.5):
             if os.getppid() != parent:
                 break
+        if os.getppid() != parent:
+            _await_watchdog(backend, args.link_dir)
     finally:
         backend.stop()
     return 0
+
+
+def _await_watchdog(backend: EmulatedVehicleBackend, link_dir: Path | None) -> None:
+    """The ground station died without stopping the motors: keep the emulated board running
+    (it free-runs after its lockstep grace period) until its BL-Ctrl watchdog has stopped every
+    motor, as the real board would, and leave a note of it in ``link_dir/emulator-exit.json``."""
+    import time
+
+    deadline = time.monotonic() + 10.0
+    fc = backend.flight_ctrl
+    while time.monotonic() < deadline and any(s > 0.0 for s in fc.commanded_rotor_speeds_hz()):
+        time.sleep(0.05)
+    stats = fc.stats()
+    note = {"reason": "ground station gone", "sim_time_s": fc.sim_time_s(),
+            "watchdog_trips": stats.watchdog_trips,
+            "motors_stopped": not any(s > 0.0 for s in fc.commanded_rotor_speeds_hz())}
+    log.warning("ground station gone: %s", note)
+    if link_dir is not None:
+        (link_dir / "emulator-exit.json").write_text(json.dumps(note))
 
 
 if __name__ == "__main__":

@@ -85,3 +85,15 @@ def short_session(tmp_path: Path, *, name: str = "flight", seed: int = 3,
                                            servo_action="hold"))
     return (load_session(session_path), load_vehicle("fasthex"),
             Mission(load_mission(tmp_path / "short-hover.yaml")))
+
+
+def fly_long_hover_in_this_process(tmp: str) -> None:
+    """Child-process entry for the kill -9 test: a session that would hover for a minute, with
+    its devices linked in ``tmp/dev`` (the emulator leaves its exit note there)."""
+    tmp_path = Path(tmp)
+    cfg, params, mission = short_session(
+        tmp_path, mission=SHORT_MISSION.replace("duration_s: 4.0", "duration_s: 60.0"))
+    dev = tmp_path / "dev"
+    dev.mkdir(exist_ok=True)
+    FlightSession(cfg, params, mission, record_path=tmp_path / "killed.fhr", session_dir=dev,
+                  echo_events=False).run()
