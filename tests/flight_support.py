@@ -97,3 +97,19 @@ def fly_long_hover_in_this_process(tmp: str) -> None:
     dev.mkdir(exist_ok=True)
     FlightSession(cfg, params, mission, record_path=tmp_path / "killed.fhr", session_dir=dev,
                   echo_events=False).run()
+
+
+def fly_shipped_session(tmp_path: Path, session: str, seed: int = 1) -> SessionOutcome:
+    """One of the shipped emulated sessions (the paper's experiments), lockstep, no dashboard."""
+    from dataclasses import replace
+
+    from config import find_config
+    from groundstation.session_config import resolve_reference
+
+    path = find_config("sessions", session)
+    cfg = load_session(path)
+    cfg = replace(cfg, backend=replace(cfg.backend, clock="lockstep", seed=seed))
+    params = load_vehicle(resolve_reference(path, cfg.vehicle))
+    mission = Mission(load_mission(resolve_reference(path, cfg.mission)))
+    return FlightSession(cfg, params, mission, record_path=tmp_path / f"{session}.fhr",
+                         echo_events=False, dashboard="off").run()
