@@ -311,13 +311,14 @@ class FlightLoop:
             elif directive.motors_on:
                 spins = (self.params.rotors.min_spin_hz,) * 6  # idle while spinning up
             self.imu.send_rotor_speeds_hz(spins)
+            sent_ns = time.monotonic_ns()
             last_spins = spins
             if tick is not None:
                 force_cmd_b = self._body_force(alpha, tick.cmd.thrusts_n)
 
             # 6. telemetry
             self._push_row(t_s, tick, alpha, est_state, spins, servo_state, directive.state)
-            self.timer.record(start_ns, time.perf_counter_ns())
+            self.timer.record(start_ns, time.perf_counter_ns(), sent_ns - imu.arrival_t_ns)
             n += 1
             if n % 50 == 0:
                 self.status = self._status_line(t_s, tick, alpha, est_state, battery_v)

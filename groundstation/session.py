@@ -478,7 +478,8 @@ def summary_lines(outcome: SessionOutcome) -> list[str]:
              f"loop: compute p50 {t.compute_p50_ms:.3f} ms, p99 {t.compute_p99_ms:.3f} ms, "
              f"max {t.compute_max_ms:.2f} ms; deadline misses {t.deadline_misses} "
              f"({100 * t.miss_fraction:.3f} %); period p50 {t.period_p50_ms:.3f} ms, "
-             f"jitter p99 {t.jitter_p99_ms:.3f} ms",
+             f"jitter p99 {t.jitter_p99_ms:.3f} ms; IMU in -> w out p50 "
+             f"{t.latency_p50_ms:.3f} ms, p99 {t.latency_p99_ms:.3f} ms",
              f"faults: {len(r.faults)}; poses rejected {r.estimator_poses_rejected}; "
              f"telemetry rows dropped {r.telemetry_dropped}"]
     lines += [f"  fault {f}" for f in r.faults]

@@ -28,6 +28,8 @@ class TimingSummary:
     compute_p50_ms: float
     compute_p99_ms: float
     compute_max_ms: float
+    latency_p50_ms: float = 0.0  # IMU bytes received -> `w` frame written
+    latency_p99_ms: float = 0.0
 
     @property
     def miss_fraction(self) -> float:
@@ -41,18 +43,21 @@ class LoopTimer:
         self.nominal_ns = round(nominal_period_s * 1e9)
         self._start = np.zeros(capacity, dtype=np.int64)
         self._compute = np.zeros(capacity, dtype=np.int64)
+        self._latency = np.zeros(capacity, dtype=np.int64)
         self._n = 0
         self._capacity = capacity
         self.deadline_misses = 0
 
-    def record(self, start_ns: int, end_ns: int) -> None:
-        """One tick: when its input arrived (start) and when its output was written (end)."""
+    def record(self, start_ns: int, end_ns: int, latency_ns: int = 0) -> None:
+        """One tick: when the loop took its input (start), when its output was written (end),
+        and how long after the input's arrival the output went out (``latency_ns``)."""
         compute = end_ns - start_ns
         if compute > self.nominal_ns:
             self.deadline_misses += 1
         if self._n < self._capacity:
             self._start[self._n] = start_ns
             self._compute[self._n] = compute
+            self._latency[self._n] = latency_ns
         self._n += 1
 
     @property
@@ -66,7 +71,7 @@ class LoopTimer:
     def summary(self) -> TimingSummary:
         n = min(self._n, self._capacity)
         if n < 2:
-            return TimingSummary(self._n, self.deadline_misses, *([0.0] * 7))
+            return TimingSummary(self._n, self.deadline_misses, *([0.0] * 9))
         period = np.diff(self._start[:n]) * 1e-6
         jitter = np.abs(period - self.nominal_ns * 1e-6)
         compute = self._compute[:n] * 1e-6
@@ -80,6 +85,8 @@ class LoopTimer:
             compute_p50_ms=float(np.percentile(compute, 50)),
             compute_p99_ms=float(np.percentile(compute, 99)),
             compute_max_ms=float(np.max(compute)),
+            latency_p50_ms=float(np.percentile(self._latency[:n], 50)) * 1e-6,
+            latency_p99_ms=float(np.percentile(self._latency[:n], 99)) * 1e-6,
         )
 
 

@@ -120,7 +120,8 @@ def flight_summary(outcome: Any, params: Any, session: str) -> dict[str, Any]:
         "flight_time_s": r.flight_time_s, "wall_time_s": outcome.wall_time_s,
         "deadline_misses": t.deadline_misses, "compute_p50_ms": t.compute_p50_ms,
         "compute_p99_ms": t.compute_p99_ms, "period_p50_ms": t.period_p50_ms,
-        "jitter_p99_ms": t.jitter_p99_ms, "faults": list(r.faults),
+        "jitter_p99_ms": t.jitter_p99_ms, "latency_p50_ms": t.latency_p50_ms,
+        "latency_p99_ms": t.latency_p99_ms, "faults": list(r.faults),
         "transitions": [f"{tr.t_s:.3f} s {tr.from_state.name} -> {tr.to_state.name}: "
                         f"{tr.reason}" for tr in r.transitions],
         "poses_rejected": r.estimator_poses_rejected,
