@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import math
 import multiprocessing as mp
-from typing import Any
+import time
 
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from process_targets import hammer_mailbox
 
 from config.schema import ConfigError, load_config_text
 from drivers.dynamixel.device import (
@@ -94,25 +95,19 @@ def test_that_an_unstarted_servo_reports_not_started_with_no_measurement() -> No
     assert math.isnan(state.tilt_rad) and state.age_s == math.inf
 
 
-def _hammer(mailbox: Any, count: int, done: Any) -> None:
-    values = [0.0] * int(_S.N)
-    for i in range(1, count + 1):
-        values[1:] = [float(i)] * (int(_S.N) - 1)
-        mailbox.publish(values)
-    done.set()
-
-
 def test_that_the_mailbox_never_hands_out_a_half_written_state() -> None:
     # Fixture: another process publishes states whose slots all hold the same number.
     ctx = mp.get_context("spawn")
     mailbox = _Mailbox(ctx)
     done = ctx.Event()
-    writer = ctx.Process(target=_hammer, args=(mailbox, 200_000, done), daemon=True)
+    writer = ctx.Process(target=hammer_mailbox, args=(mailbox, 200_000, done), daemon=True)
     writer.start()
     # Test: snapshot as fast as possible while it writes.
     seen, last = 0, None
     try:
-        while not done.is_set() or seen == 0:
+        deadline = time.monotonic() + 120.0
+        while (not done.is_set() or seen == 0) and writer.exitcode is None \
+                and time.monotonic() < deadline:
             snap = mailbox.snapshot(last)
             if snap is not None and snap[_S.SEQLOCK] > 0:  # 0: nothing published yet
                 # Assert: every snapshot is one whole publication.

@@ -6,31 +6,16 @@ from __future__ import annotations
 import multiprocessing as mp
 
 import numpy as np
+from process_targets import read_ring
 
 from groundstation.telemetry import TelemetryRing
-
-
-def _reader(name: str, n_cols: int, expected: int, out: mp.Queue) -> None:  # type: ignore[type-arg]
-    ring = TelemetryRing((np.float64, n_cols), capacity=64, name=name)
-    got: list[np.ndarray] = []
-    import time
-
-    deadline = time.monotonic() + 60.0
-    while sum(len(g) for g in got) < expected and time.monotonic() < deadline:
-        rows = ring.drain()
-        if len(rows):
-            got.append(rows)
-        else:
-            time.sleep(0.001)
-    ring.close()
-    out.put(np.concatenate(got) if got else np.empty((0, n_cols)))
 
 
 def test_that_rows_reach_another_process_in_order() -> None:
     ctx = mp.get_context("spawn")
     ring = TelemetryRing((np.float64, 5), capacity=64)
     q: mp.Queue = ctx.Queue()  # type: ignore[type-arg]
-    proc = ctx.Process(target=_reader, args=(ring.name, 5, 40, q))
+    proc = ctx.Process(target=read_ring, args=(ring.name, 5, 40, q))
     proc.start()
     try:
         for k in range(40):
