@@ -11,6 +11,7 @@ vehicle is when a failsafe fires, keeping its heading, level attitude requested.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from controller.geometric import Command, GeometricController
@@ -80,8 +81,10 @@ class FlightComputer:
         cmd = self.controller.step(t_s, state, ref, alpha_rad, force_ext_w_n)
         return ControlTick(ref, math.nan if alpha_ref is None else alpha_ref, alpha_cmd, cmd)
 
-    def force_efficiency(self, alpha_rad: float, thrusts_n: tuple[float, ...]) -> float:
-        """eta_f of the given thrusts at the measured tilt (axes cached per alpha)."""
+    def thrust_force_b(self, alpha_rad: float, thrusts_n: Sequence[float]
+                       ) -> tuple[Vec3, float]:
+        """The body force of the given thrusts at tilt ``alpha_rad`` (N, body frame) and its
+        force efficiency eta_f (axes cached per alpha; plain floats, no numpy per call)."""
         if alpha_rad != self._axes_alpha:
             self._axes = [(float(a[0]), float(a[1]), float(a[2]))
                           for a in self.model.thrust_axes(alpha_rad)]
@@ -92,7 +95,12 @@ class FlightComputer:
             fy += f * a[1]
             fz += f * a[2]
             tot += f
-        return math.sqrt(fx * fx + fy * fy + fz * fz) / tot if tot > 0.0 else 1.0
+        eta = math.sqrt(fx * fx + fy * fy + fz * fz) / tot if tot > 0.0 else 1.0
+        return (fx, fy, fz), eta
+
+    def force_efficiency(self, alpha_rad: float, thrusts_n: Sequence[float]) -> float:
+        """eta_f of the given thrusts at the measured tilt."""
+        return self.thrust_force_b(alpha_rad, thrusts_n)[1]
 
 
 @dataclass(frozen=True)

@@ -30,8 +30,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-import numpy as np
-
 from controller.missions import Mission
 from controller.params import VehicleParams
 from controller.pipeline import ControlTick, FlightComputer, LandHere
@@ -141,7 +139,7 @@ class FlightLoop:
         ground_since_s: float | None = None
         mocap_start_pos = None
         tick: ControlTick | None = None
-        force_cmd_b = np.zeros(3)
+        force_cmd_b: tuple[float, float, float] = (0.0, 0.0, 0.0)
         est_state = VehicleState((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0),
                                  (0.0, 0.0, 0.0))
         link_ok = True
@@ -314,7 +312,7 @@ class FlightLoop:
             sent_ns = time.monotonic_ns()
             last_spins = spins
             if tick is not None:
-                force_cmd_b = self._body_force(alpha, tick.cmd.thrusts_n)
+                force_cmd_b = self.computer.thrust_force_b(alpha, tick.cmd.thrusts_n)[0]
 
             # 6. telemetry
             self._push_row(t_s, tick, alpha, est_state, spins, servo_state, directive.state)
@@ -471,10 +469,6 @@ class FlightLoop:
             body_tilt_deg=math.degrees(math.acos(max(-1.0, min(1.0, r33)))),
             on_ground=on_ground, mission_phase=phase, motors_spinning=spinning,
         )
-
-    def _body_force(self, alpha: float, thrusts: tuple[float, ...]) -> np.ndarray:
-        axes = self.computer.model.thrust_axes(alpha)
-        return np.asarray(thrusts) @ axes
 
     def _push_row(self, t_s: float, tick: ControlTick | None, alpha: float,
                   est: VehicleState, spins: tuple[float, ...], servo: Any,

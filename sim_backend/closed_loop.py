@@ -25,10 +25,9 @@ from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from controller.geometric import GeometricController
 from controller.missions import Mission
-from controller.model import LateralBound, VehicleModel
 from controller.params import VehicleParams
+from controller.pipeline import FlightComputer
 from controller.reference import (
     Quat,
     Vec3,
@@ -37,7 +36,6 @@ from controller.reference import (
     quat_mul,
     rot_to_quat,
 )
-from controller.tilt_planner import TiltPlanner
 from sim_backend.disturbances import DisturbancePreset
 from sim_backend.sensors import NormalStream
 from sim_backend.simulator import FastHexSimulator
@@ -47,8 +45,6 @@ if TYPE_CHECKING:
     from estimator import EstimatorConfig
 
 CONTROL_RATE_HZ = 500.0
-#: how often the auto tilt mode re-evaluates the look-ahead lateral demand
-AUTO_UPDATE_PERIOD_S = 0.1
 
 
 class StateSource(Protocol):
@@ -198,12 +194,7 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
     after the state source, before the controller (analysis: the simulator's truth).
     Returns the metadata a record header should carry, with timing.
     """
-    model = VehicleModel(params)
-    bound = LateralBound.for_model(model)
-    controller = GeometricController(params, model=model, bound=bound)
-    # the planner's capability: the same fit without the controller's conservative scale
-    planner = TiltPlanner(params, capability=LateralBound(bound.coeffs_n, 1.0,
-                                                          bound.dead_zone_deg))
+    computer = FlightComputer(params, mission, tilt_override_rad=tilt_override_rad)
     sim = FastHexSimulator(params, preset, seed=seed, start_pos_w_m=mission.start_pos_w_m,
                            start_q_wb=mission.start_q_wb)
     rng = np.random.default_rng([seed, 7])
@@ -220,12 +211,6 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
     dt = 1.0 / CONTROL_RATE_HZ
     n_ticks = round(end_s * CONTROL_RATE_HZ)
     c_f = params.rotors.thrust_coeff_n_per_hz2
-    mass, g = params.mass_kg, params.gravity_m_s2
-    axes_alpha = math.nan
-    axes: list[tuple[float, float, float]] = []
-    next_auto_s = 0.0
-    demand: float | None = None
-    nan = math.nan
     wall0 = time.perf_counter()
     for _ in range(round(preroll_s * CONTROL_RATE_HZ)):
         source.update(sim.now_s(), sim.read_imu(), sim.poll_mocap())
@@ -237,39 +222,19 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
         est = source.update(t + t_offset, imu, sim.poll_mocap())
         if on_tick is not None:
             on_tick(t, sim)
-        ref = mission.reference(t)
         alpha = sim.tilt_rad()
-        margin = 0.0
-        demand = None
-        alpha_ref = ref.alpha_rad if tilt_override_rad is None else tilt_override_rad
-        if alpha_ref is None:
-            auto = mission.auto_profile(t)
-            margin = auto.margin_n if auto is not None else 0.0
-            if t >= next_auto_s:
-                next_auto_s = t + AUTO_UPDATE_PERIOD_S
-                demand = mission.lateral_demand_n(
-                    t, auto.horizon_s if auto is not None else 0.0, mass, g)
-        sim.command_tilt_rad(planner.step(t, alpha_ref, demand, margin))
-        cmd = controller.step(t, est, ref, alpha, None if observer is None
-                              else observer.external_force_w_n())
+        tick = computer.step(t, est, alpha, force_ext_w_n=None if observer is None
+                             else observer.external_force_w_n())
+        ref, cmd = tick.ref, tick.cmd
+        sim.command_tilt_rad(tick.alpha_cmd_rad)
         done = t >= mission.duration_s
         spins = (0.0,) * 6 if done else cmd.spin_hz
         sim.command_rotor_speeds_hz(spins)
-
-        # internal-force efficiency of the commanded (clamped) thrusts at the measured tilt
-        if alpha != axes_alpha:
-            axes = [tuple(float(v) for v in row) for row in model.thrust_axes(alpha)]  # type: ignore[misc]
-            axes_alpha = alpha
-        fx = fy = fz = tot = 0.0
+        # body force and internal-force efficiency of the commanded (clamped) thrusts
         thrusts = [c_f * w * w for w in spins]
-        for f, a in zip(thrusts, axes, strict=True):
-            fx += f * a[0]
-            fy += f * a[1]
-            fz += f * a[2]
-            tot += f
-        eta = math.sqrt(fx * fx + fy * fy + fz * fz) / tot if tot > 0.0 else 1.0
+        force_b, eta = computer.thrust_force_b(alpha, thrusts)
         if observer is not None:
-            observer.command_issued((fx, fy, fz))
+            observer.command_issued(force_b)
         s = sim.state()
         mask = 0
         for i, flag in enumerate(cmd.saturated):
@@ -278,7 +243,7 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
         writer.append((
             t, ref.segment, ref.measured, mask, sim.landed,
             ref.pos_w_m, ref.vel_w_m_s, ref.acc_w_m_s2, ref.q_wr,
-            nan if alpha_ref is None else alpha_ref, planner.alpha_cmd_rad, alpha,
+            tick.alpha_ref_rad, tick.alpha_cmd_rad, alpha,
             rot_to_quat(cmd.r_wd), s.pos_w_m, s.vel_w_m_s, s.q_wb, s.omega_b_rad_s,
             est.pos_w_m, est.q_wb, spins, sim.rotor_speeds_hz(), thrusts,
             cmd.f_r_w_n, cmd.u_f_b_n, cmd.u_tau_b_n_m, cmd.r_xy_n, cmd.theta_rad, eta,
