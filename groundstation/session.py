@@ -121,8 +121,10 @@ class EmulatorProcess:
 
     def close(self) -> None:
         if self.proc.poll() is None:
-            with contextlib.suppress(OSError):
+            with contextlib.suppress(OSError, ValueError):
                 assert self.proc.stdin is not None
+                self.proc.stdin.write("quit\n")
+                self.proc.stdin.flush()
                 self.proc.stdin.close()
             try:
                 self.proc.wait(timeout=5.0)

@@ -15,7 +15,8 @@ IMU sample sees exactly the poses due by then, so lockstep flights are determini
 Run as ``python -m sim_backend.backend --vehicle fasthex --disturbances paper-calibrated
 --start X Y Z --seed N --clock lockstep --link-dir DIR``. It prints one JSON line per device
 (``{"device": "flight-ctrl", "kind": "pty", "address": PATH}``) and then ``{"ready": true}``,
-and runs until SIGINT/SIGTERM, stdin closing, or the death of its parent.
+and runs until SIGINT/SIGTERM, a ``quit`` line on stdin, or the death of its parent (stdin
+closing without ``quit``): then it first lets the emulated board's watchdog stop the motors.
 """
 
 from __future__ import annotations
@@ -275,13 +276,13 @@ class EmulatedVehicleBackend:
 
 
 def _die_with_parent() -> None:
-    """Linux: get SIGTERM when the parent dies (kill -9 included)."""
+    """Linux: get SIGUSR1 when the parent dies (kill -9 included)."""
     if not sys.platform.startswith("linux"):
         return
     with contextlib.suppress(OSError, AttributeError):
         libc = ctypes.CDLL("libc.so.6", use_errno=True)
         pr_set_pdeathsig = 1
-        libc.prctl(pr_set_pdeathsig, signal.SIGTERM)
+        libc.prctl(pr_set_pdeathsig, signal.SIGUSR1)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -322,25 +323,39 @@ def main(argv: list[str] | None = None) -> int:
         watchdog_s=args.watchdog_s, faults=faults, truth_path=args.truth,
     ))
     stop = threading.Event()
+    orphaned = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
+
+    def _parent_died(*_: object) -> None:
+        orphaned.set()
+        stop.set()
+
+    signal.signal(signal.SIGUSR1, _parent_died)
     try:
         for dev in backend.start():
             print(json.dumps({"device": dev.device, "kind": dev.kind, "address": dev.address}),
                   flush=True)
         print(json.dumps({"ready": True, "t_s": backend.sim.now_s()}), flush=True)
 
-        def _watch_stdin() -> None:  # the parent closing our stdin also ends us
+        def _watch_stdin() -> None:
+            # "quit" is the parent's orderly stop; end of input without it means the parent
+            # died (its end of the pipe closes before the kernel re-parents us).
             with contextlib.suppress(Exception):
-                sys.stdin.read()
+                for line in sys.stdin:
+                    if line.strip() == "quit":
+                        stop.set()
+                        return
+            orphaned.set()
             stop.set()
 
         if not sys.stdin.isatty():
             threading.Thread(target=_watch_stdin, daemon=True).start()
         while not stop.wait(0.5):
             if os.getppid() != parent:
+                orphaned.set()
                 break
-        if os.getppid() != parent:
+        if orphaned.is_set() or os.getppid() != parent:
             _await_watchdog(backend, args.link_dir)
     finally:
         backend.stop()

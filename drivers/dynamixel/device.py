@@ -631,8 +631,15 @@ class _Worker:
 
     # -- commands from the owner (rare; the owner waits for the answer)
     def serve_commands(self) -> None:
-        while self.conn.poll(0):
-            request_id, *request = self.conn.recv()
+        while True:
+            try:
+                if not self.conn.poll(0):
+                    return
+                request_id, *request = self.conn.recv()
+            except (EOFError, OSError):  # the owner is gone (killed): stop serving
+                self.stop.set()
+                self.conn = None
+                return
             if not self.configured:
                 error = ServoCommError(self.link.uri, f"{request[0]}: servo not connected")
                 self.conn.send((request_id, "error", error))
