@@ -322,9 +322,12 @@ class FlightLoop:
                 self.status = self._status_line(t_s, tick, alpha, est_state, battery_v)
             if sm.finished:
                 self._stop_motors()
-                if sm.transitions and sm.transitions[-1].reason != "touchdown" and \
-                        end_reason == "mission complete":
-                    end_reason = sm.transitions[-1].reason
+                # why the flight ended: what sent it into LANDING or CUT (or the last step)
+                cause = next((tr.reason for tr in reversed(sm.transitions)
+                              if tr.to_state in (FlightState.LANDING, FlightState.CUT)),
+                             sm.transitions[-1].reason if sm.transitions else end_reason)
+                if end_reason == "mission complete":
+                    end_reason = cause
                 break
             if t_s > opts.max_flight_s:
                 sm.request(t_s, "stop")
