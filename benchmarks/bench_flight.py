@@ -65,14 +65,15 @@ telemetry:
 """
 
 
-def fly(tmp: Path, clock: str, hover_s: float, realtime_settings: bool) -> SessionOutcome:
+def fly(tmp: Path, clock: str, hover_s: float, realtime_settings: bool,
+        dashboard: str = "off") -> SessionOutcome:
     (tmp / "bench-hover.yaml").write_text(MISSION.format(hover=hover_s))
     (tmp / f"{clock}.yaml").write_text(SESSION.format(clock=clock))
     cfg = load_session(tmp / f"{clock}.yaml")
     return FlightSession(cfg, load_vehicle("fasthex"),
                          Mission(load_mission(tmp / "bench-hover.yaml")),
                          record_path=tmp / f"{clock}.fhr", echo_events=False,
-                         realtime_settings=realtime_settings).run()
+                         realtime_settings=realtime_settings, dashboard=dashboard).run()
 
 
 def numerics_baseline(n: int = 5000) -> tuple[float, float]:
@@ -96,9 +97,9 @@ def numerics_baseline(n: int = 5000) -> tuple[float, float]:
 
 def report(name: str, out: SessionOutcome) -> None:
     r, t = out.result, out.result.timing
-    print(f"{name}: {r.ticks} ticks, {r.flight_time_s:.1f} s flight in {out.wall_time_s:.1f} s "
-          f"wall ({(r.ticks / 500.0) / out.wall_time_s:.2f} sim s per wall s); end: "
-          f"{r.end_reason}")
+    print(f"{name}: {r.ticks} ticks, {r.flight_time_s:.1f} s flight; session "
+          f"{out.wall_time_s:.1f} s wall with start-up, loop {r.loop_wall_s:.1f} s wall "
+          f"({(r.ticks / 500.0) / r.loop_wall_s:.2f} sim s per wall s); end: {r.end_reason}")
     print(f"  deadline misses {t.deadline_misses} ({100 * t.miss_fraction:.3f} %), period "
           f"p50 {t.period_p50_ms:.3f} p99 {t.period_p99_ms:.3f} ms, jitter p99 "
           f"{t.jitter_p99_ms:.3f} ms")
@@ -114,6 +115,8 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--hover-s", type=float, default=53.0, help="hover time (flight = +7 s)")
     ap.add_argument("--skip-realtime", action="store_true")
+    ap.add_argument("--dashboard", action="store_true",
+                    help="also: realtime with the rerun dashboard saving, vs off (same run)")
     args = ap.parse_args()
     med, p99 = numerics_baseline()
     print(f"baseline, tick numerics alone (UKF predict + controller): median {med:.1f} us, "
@@ -124,6 +127,12 @@ def main() -> None:
         if not args.skip_realtime:
             report("realtime, default scheduling", fly(tmp, "realtime", args.hover_s, False))
             report("realtime, --realtime-settings", fly(tmp, "realtime", args.hover_s, True))
+        if args.dashboard:
+            for rt in (False, True):
+                tag = ", --realtime-settings" if rt else ""
+                report(f"realtime{tag}, dashboard off", fly(tmp, "realtime", args.hover_s, rt))
+                report(f"realtime{tag}, dashboard saving .rrd",
+                       fly(tmp, "realtime", args.hover_s, rt, dashboard="save"))
 
 
 if __name__ == "__main__":

@@ -73,6 +73,7 @@ class LoopResult:
     end_reason: str
     estimator_poses_rejected: int
     telemetry_dropped: int
+    loop_wall_s: float = 0.0  # wall time from the first IMU sample to the end
     counters: dict[str, int] = field(default_factory=dict)
 
 
@@ -81,7 +82,8 @@ class LoopOptions:
     lockstep: bool
     imu_rate_hz: float
     ground_z_m: float
-    servo_sync_every: int = 5  # lockstep: one synchronous servo cycle every N ticks (100 Hz)
+    servo_sync_every: int = 10  # lockstep: one synchronous servo cycle every N ticks (50 Hz,
+    #                              the service rate of the servo process on hardware)
     preflight_timeout_s: float = 15.0
     min_preflight_s: float = 1.0
     max_start_offset_m: float = 0.3  # vehicle vs the mission's start position
@@ -149,6 +151,7 @@ class FlightLoop:
         n = 0
         timeout_s = self.sm.limits.imu_timeout_s
         scripted = sorted(opts.scripted_requests)
+        wall_start = 0.0
         last_spins: tuple[float, ...] = ZERO6
         servo_health = ServoHealth.OK
         missing = 0  # consecutive IMU samples not received
@@ -200,6 +203,7 @@ class FlightLoop:
             t_ns = imu.seq * self.period_ns if opts.lockstep else imu.t_ns
             self.now_ns = t_ns
             if t0_s is None:  # lockstep: the board's own clock, sample k at k periods
+                wall_start = time.perf_counter()
                 t0_s = 0.0 if opts.lockstep else t_ns * 1e-9
             t_s = t_ns * 1e-9 - t0_s
 
@@ -332,6 +336,7 @@ class FlightLoop:
             if t_s > opts.max_flight_s:
                 sm.request(t_s, "stop")
         return LoopResult(
+            loop_wall_s=time.perf_counter() - wall_start if wall_start else 0.0,
             transitions=list(sm.transitions), faults=list(sm.faults),
             timing=self.timer.summary(), ticks=n,
             flight_time_s=(t_s - takeoff_t_s) if takeoff_t_s is not None else 0.0,
