@@ -56,6 +56,8 @@ log = logging.getLogger(__name__)
 ZERO6 = (0.0,) * 6
 #: ticks between checks of the IMU link's measured rate (the check costs ~20 us)
 LINK_CHECK_TICKS = 50
+#: landing: O_B within 4 cm of its resting height this long -> touchdown confirmed, disarm
+TOUCHDOWN_CONFIRM_S = 0.4
 #: lockstep: wall time after which a sample counts as lost, and the slice to check the link
 LOCKSTEP_LOST_S = 0.1
 LOCKSTEP_SLICE_S = 0.003
@@ -457,13 +459,15 @@ class FlightLoop:
         return "mission" if tm < end else "land"
 
     def _near_ground(self, est: VehicleState) -> bool:
-        return est.pos_w_m[2] < self.opts.ground_z_m + 0.03 and abs(est.vel_w_m_s[2]) < 0.1
+        # height only: the contact's impacts make the estimated vertical speed jumpy, and a
+        # bounce that leaves this band restarts the confirmation anyway
+        return est.pos_w_m[2] < self.opts.ground_z_m + 0.04
 
     def _on_ground(self, t_s: float, est: VehicleState, state: FlightState,
                    land_here: LandHere | None, since: float | None) -> bool:
         if state is not FlightState.LANDING or since is None:
             return False
-        return t_s - since > 0.5
+        return t_s - since > TOUCHDOWN_CONFIRM_S
 
     def _health(self, imu_age_s: float, link_ok: bool, mocap_age_s: float, estimator_ok: bool,
                 servo: ServoHealth, battery_v: float, est: VehicleState, on_ground: bool,
