@@ -43,8 +43,8 @@ from drivers.mocap.frames import FrameConfig, FrameTransform
 from drivers.mocap.pose import (
     NAN3,
     NAN4,
+    FrameWaits,
     MocapConnectError,
-    MocapStats,
     PoseSample,
     StreamMonitor,
     TrackingStatus,
@@ -97,7 +97,7 @@ class NatNetConfig:
         return f"natnet://{self.server_ip}:{self.command_port}"
 
 
-class NatNetClient:
+class NatNetClient(FrameWaits):
     """A :class:`~drivers.mocap.pose.PoseSource` reading one OptiTrack NatNet server.
 
     ``with NatNetClient(cfg) as c: c.latest()``. ``clock`` returns nanoseconds (the
@@ -395,28 +395,6 @@ class NatNetClient:
         rb = next((b for b in frame.rigid_bodies if b.body_id == bid), None)
         return self._sample(rb, bid, frame.frame_number, *times)
 
-    def stats(self) -> MocapStats:
-        return self.monitor.snapshot()
-
-    @property
-    def frames_seen(self) -> int:
-        """Frames (reports) received so far; pair with :meth:`wait_for_total`."""
-        return self._frames_seen
-
-    def wait_for_total(self, total: int, timeout_s: float) -> bool:
-        """Block until ``total`` frames have been received in all; False on timeout."""
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while self._frames_seen < total:
-                left = deadline - time.monotonic()
-                if left <= 0.0:
-                    return False
-                self._cond.wait(left)
-        return True
-
-    def wait_frames(self, count: int, timeout_s: float) -> bool:
-        """Block until ``count`` more frames arrive after this call; False on timeout."""
-        return self.wait_for_total(self._frames_seen + count, timeout_s)
 
     # ------------------------------------------------------------------ info
 

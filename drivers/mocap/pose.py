@@ -14,6 +14,7 @@ from __future__ import annotations
 import enum
 import math
 import threading
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -159,3 +160,36 @@ class StreamMonitor:
             return MocapStats(self.frames_received, self.frames_dropped, self.frame_jumps,
                               self.invalid_samples, self.malformed_packets,
                               self.foreign_packets, rate, age, self._latency_s)
+
+
+class FrameWaits:
+    """What every MoCap client offers on top of :class:`PoseSource`: the stream statistics and
+    waits for received frames (tools and tests; never the control loop). The client keeps
+    ``_frames_seen`` (incremented under ``_cond``, notifying it) and a ``monitor``."""
+
+    _cond: threading.Condition
+    _frames_seen: int
+    monitor: StreamMonitor
+
+    def stats(self) -> MocapStats:
+        return self.monitor.snapshot()
+
+    @property
+    def frames_seen(self) -> int:
+        """Frames (reports) received so far; pair with :meth:`wait_for_total`."""
+        return self._frames_seen
+
+    def wait_for_total(self, total: int, timeout_s: float) -> bool:
+        """Block until ``total`` frames have been received in all; False on timeout."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while self._frames_seen < total:
+                left = deadline - time.monotonic()
+                if left <= 0.0:
+                    return False
+                self._cond.wait(left)
+        return True
+
+    def wait_frames(self, count: int, timeout_s: float) -> bool:
+        """Block until ``count`` more frames arrive after this call; False on timeout."""
+        return self.wait_for_total(self._frames_seen + count, timeout_s)

@@ -37,8 +37,8 @@ from drivers.mocap.frames import FrameConfig, FrameTransform
 from drivers.mocap.pose import (
     NAN3,
     NAN4,
+    FrameWaits,
     MocapConnectError,
-    MocapStats,
     PoseSample,
     StreamMonitor,
     TrackingStatus,
@@ -75,7 +75,7 @@ class VrpnConfig:
         return f"vrpn://{self.tracker}@{self.host}:{self.port}"
 
 
-class VrpnClient:
+class VrpnClient(FrameWaits):
     """A :class:`~drivers.mocap.pose.PoseSource` reading one sensor of a VRPN tracker."""
 
     def __init__(self, config: VrpnConfig, clock: Callable[[], int] = time.monotonic_ns
@@ -92,7 +92,7 @@ class VrpnClient:
         self._senders: dict[int, str] = {}
         self._types: dict[int, str] = {}
         self._latest: PoseSample | None = None
-        self._reports = 0
+        self._frames_seen = 0
         self.reconnects = 0
 
     def __enter__(self) -> VrpnClient:
@@ -217,7 +217,7 @@ class VrpnClient:
         rx = self._clock()
         lat = self.config.latency_s
         t_ns = rx - round(lat * 1e9)
-        self._reports += 1
+        self._frames_seen += 1
         self.monitor.on_frame(None, rx, lat)
         status = TrackingStatus.OK
         try:
@@ -228,7 +228,7 @@ class VrpnClient:
             status = TrackingStatus.INVALID
         if status is not TrackingStatus.OK:
             pos, q = NAN3, NAN4
-        sample = PoseSample(t_ns, rx, self._reports, report.sensor, self.config.tracker,
+        sample = PoseSample(t_ns, rx, self._frames_seen, report.sensor, self.config.tracker,
                             status, pos, q, lat, math.nan)
         self.monitor.on_sample(sample)
         with self._cond:
@@ -247,28 +247,6 @@ class VrpnClient:
                               TrackingStatus.MISSING, NAN3, NAN4, s.latency_s, math.nan)
         return s
 
-    def stats(self) -> MocapStats:
-        return self.monitor.snapshot()
-
-    @property
-    def frames_seen(self) -> int:
-        """Frames (reports) received so far; pair with :meth:`wait_for_total`."""
-        return self._reports
-
-    def wait_for_total(self, total: int, timeout_s: float) -> bool:
-        """Block until ``total`` frames have been received in all; False on timeout."""
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while self._reports < total:
-                left = deadline - time.monotonic()
-                if left <= 0.0:
-                    return False
-                self._cond.wait(left)
-        return True
-
-    def wait_frames(self, count: int, timeout_s: float) -> bool:
-        """Block until ``count`` more frames arrive after this call; False on timeout."""
-        return self.wait_for_total(self._reports + count, timeout_s)
 
     def trackers(self) -> list[str]:
         """Sender (tracker) names the server has announced."""
