@@ -160,7 +160,8 @@ class FlightStateMachine:
         if start in MOTORS_ON:
             self._check_failsafes(t_s, h)
         s = self.state
-        if s is FlightState.ARMED and t_s - self._armed_at_s >= self.limits.spin_up_s:
+        if s is FlightState.ARMED and t_s - self._armed_at_s >= self.limits.spin_up_s \
+                and h.motors_spinning:  # every BL-Ctrl reports `spinning`
             self._go(t_s, FlightState.TAKEOFF, "motors at idle speed")
         elif s is FlightState.TAKEOFF and h.mission_phase != "takeoff":
             self._go(t_s, FlightState.MISSION, "takeoff complete")

@@ -108,6 +108,7 @@ class FlightLoop:
         self.opts = options
         self.sm = FlightStateMachine(limits)
         self.computer = FlightComputer(params, mission)
+        self._measured_interval = mission.measured_interval_s()
         self.row_sink = row_sink
         self.event_sink = event_sink
         self.period_ns = round(1e9 / options.imu_rate_hz)
@@ -141,7 +142,6 @@ class FlightLoop:
         alpha = 0.0
         servo_state = None
         ground_since_s: float | None = None
-        mocap_start_pos = None
         tick: ControlTick | None = None
         force_cmd_b: tuple[float, float, float] = (0.0, 0.0, 0.0)
         est_state = VehicleState((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0),
@@ -217,13 +217,12 @@ class FlightLoop:
                 last_frame = pose.frame_number
                 if pose.valid:
                     cap_s = pose.t_ns * 1e-9 - t0_s
-                    # 3. (update part) the UKF replays from the capture time
-                    if self.ukf.initialized or self.ukf.t_s == self.ukf.t_s:
+                    # 3. (update part) the UKF replays from the capture time; it needs one
+                    # IMU sample first (its clock starts with the first prediction)
+                    if math.isfinite(self.ukf.t_s):
                         self.ukf.update_pose(cap_s, pose.pos_w_m, pose.q_wb)
                     last_pose_t_s = cap_s
                     self._counters["poses_fused"] += 1
-                    if mocap_start_pos is None:
-                        mocap_start_pos = pose.pos_w_m
             # a faulted servo is retried at 2 Hz only (each failed cycle costs a timeout)
             sync_every = opts.servo_sync_every if servo_health is not ServoHealth.FAULT \
                 else 250
@@ -286,7 +285,8 @@ class FlightLoop:
             tm = t_s - takeoff_t_s if takeoff_t_s is not None else 0.0
             phase = self._mission_phase(tm)
             spinning = self.imu.motors().all_spinning if sm.state is FlightState.ARMED else True
-            on_ground = self._on_ground(t_s, est_state, sm.state, land_here, ground_since_s)
+            on_ground = (sm.state is FlightState.LANDING and ground_since_s is not None
+                         and t_s - ground_since_s > TOUCHDOWN_CONFIRM_S)
             ground_since_s = (ground_since_s or t_s) if self._near_ground(est_state) else None
             h = self._health(0.0, link_ok, t_s - last_pose_t_s, estimator_ok, servo_health,
                              battery_v, est_state, on_ground, phase, spinning)
@@ -317,11 +317,12 @@ class FlightLoop:
             self.imu.send_rotor_speeds_hz(spins)
             sent_ns = time.monotonic_ns()
             last_spins = spins
-            if tick is not None:
-                force_cmd_b = self.computer.thrust_force_b(alpha, tick.cmd.thrusts_n)[0]
+            eta_f = 1.0
+            if tick is not None:  # the commanded body force feeds the UKF's force observer
+                force_cmd_b, eta_f = self.computer.thrust_force_b(alpha, tick.cmd.thrusts_n)
 
             # 6. telemetry
-            self._push_row(t_s, tick, alpha, est_state, spins, servo_state, directive.state)
+            self._push_row(t_s, tick, alpha, est_state, spins, eta_f, directive.state)
             self.timer.record(start_ns, time.perf_counter_ns(), sent_ns - imu.arrival_t_ns)
             n += 1
             if n % 50 == 0:
@@ -450,7 +451,7 @@ class FlightLoop:
     def _mission_phase(self, tm: float) -> Literal["takeoff", "mission", "land", "done"]:
         if tm >= self.mission.duration_s:
             return "done"
-        interval = self.mission.measured_interval_s()
+        interval = self._measured_interval
         if interval is None:
             return "mission"
         start, end = interval
@@ -462,12 +463,6 @@ class FlightLoop:
         # height only: the contact's impacts make the estimated vertical speed jumpy, and a
         # bounce that leaves this band restarts the confirmation anyway
         return est.pos_w_m[2] < self.opts.ground_z_m + 0.04
-
-    def _on_ground(self, t_s: float, est: VehicleState, state: FlightState,
-                   land_here: LandHere | None, since: float | None) -> bool:
-        if state is not FlightState.LANDING or since is None:
-            return False
-        return t_s - since > TOUCHDOWN_CONFIRM_S
 
     def _health(self, imu_age_s: float, link_ok: bool, mocap_age_s: float, estimator_ok: bool,
                 servo: ServoHealth, battery_v: float, est: VehicleState, on_ground: bool,
@@ -483,7 +478,7 @@ class FlightLoop:
         )
 
     def _push_row(self, t_s: float, tick: ControlTick | None, alpha: float,
-                  est: VehicleState, spins: tuple[float, ...], servo: Any,
+                  est: VehicleState, spins: tuple[float, ...], eta_f: float,
                   state: FlightState) -> None:
         nan = math.nan
         row: tuple[Any, ...]
@@ -494,8 +489,7 @@ class FlightLoop:
                    ref.q_wr, tick.alpha_ref_rad, tick.alpha_cmd_rad, alpha,
                    rot_to_quat(cmd.r_wd), est.pos_w_m, est.vel_w_m_s, est.q_wb,
                    est.omega_b_rad_s, est.pos_w_m, est.q_wb, spins, spins, cmd.thrusts_n,
-                   cmd.f_r_w_n, cmd.u_f_b_n, cmd.u_tau_b_n_m, cmd.r_xy_n, cmd.theta_rad,
-                   self.computer.force_efficiency(alpha, cmd.thrusts_n))
+                   cmd.f_r_w_n, cmd.u_f_b_n, cmd.u_tau_b_n_m, cmd.r_xy_n, cmd.theta_rad, eta_f)
         else:
             zero3 = (0.0, 0.0, 0.0)
             row = (t_s, -1, False, 0, 1, est.pos_w_m, zero3, zero3, (1.0, 0.0, 0.0, 0.0),
@@ -523,11 +517,11 @@ def _mask(flags: tuple[bool, ...]) -> int:
 
 
 def _servo_health(state: Any) -> ServoHealth:
-    if state is None:
+    """The driver's detailed health -> what the state machine acts on: a corrupted reply is a
+    degraded link (the next cycle may be fine; a lasting problem becomes NO_REPLY or STALE),
+    anything else that is not OK is a fault (no reply, stale, error bits, unplugged, ...)."""
+    if state is None or state.health is DxlHealth.OK:
         return ServoHealth.OK
-    h = state.health
-    if h is DxlHealth.OK:
-        return ServoHealth.OK
-    if h.name in ("WARNING", "DEGRADED", "OVERLOAD", "MOVING"):
+    if state.health is DxlHealth.CORRUPT_REPLY:
         return ServoHealth.DEGRADED
     return ServoHealth.FAULT

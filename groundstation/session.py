@@ -44,11 +44,10 @@ from groundstation.loop import FlightLoop, LoopOptions, LoopResult
 from groundstation.record import RECORD_DTYPE, RecordWriter
 from groundstation.session_config import EmulatedBackend, HardwareBackend, SessionConfig
 from groundstation.telemetry import TelemetryRing
+from sim_backend.backend import SERVO_ZERO_OFFSET_STEPS
 
 log = logging.getLogger(__name__)
 
-#: Present Position of the emulated servo at tilt 0 (``sim_backend.backend``).
-EMULATED_SERVO_ZERO_STEPS = 1024
 
 
 class SessionError(Exception):
@@ -83,7 +82,7 @@ def device_uris(cfg: SessionConfig, emulator: EmulatorProcess | None) -> DeviceU
     devs = emulator.devices
     return DeviceUris(devs["flight-ctrl"], devs["servo"] + "?baud=1000000&id=1",
                       f"natnet://{devs['mocap']}?local=127.0.0.1&body=fasthex",
-                      EMULATED_SERVO_ZERO_STEPS)
+                      SERVO_ZERO_OFFSET_STEPS)
 
 
 class EmulatorProcess:

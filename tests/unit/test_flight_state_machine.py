@@ -130,3 +130,11 @@ def test_that_a_landing_failsafe_does_not_repeat_while_landing_on_the_estimate()
     sm.update(10.0, replace(OK, mocap_age_s=3.0))
     sm.update(10.002, replace(OK, mocap_age_s=3.002))
     assert len(sm.faults) == 1 and sm.state is FlightState.LANDING
+
+
+def test_that_takeoff_waits_until_every_motor_spins() -> None:
+    sm = FlightStateMachine(LIMITS)
+    sm.request(0.0, "arm")
+    starting = replace(OK, mission_phase="takeoff", on_ground=True, motors_spinning=False)
+    assert sm.update(3.0, starting).state is FlightState.ARMED  # past spin_up_s, not spinning
+    assert sm.update(3.1, replace(starting, motors_spinning=True)).state is FlightState.TAKEOFF
