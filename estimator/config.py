@@ -46,7 +46,15 @@ class EstimatorConfig:
     mocap_att_sigma_deg: float = spec(0.15, gt=0.0, le=30.0, doc="MoCap attitude noise (1 sigma)")
     mocap_stale_s: float = spec(0.05, gt=0.0, le=10.0,
                                 doc="no accepted pose for this long -> MOCAP_STALE")
-    latency_compensation: bool = spec(True, doc="fuse poses at their capture time (replay)")
+    latency_compensation: bool = spec(True, doc="fuse poses at their capture time")
+    max_fusion_delay_s: float = spec(
+        0.05, ge=0.0, le=1.0,
+        doc="the filter runs behind the newest IMU sample by the smallest recent MoCap latency, "
+            "at most this much (an output predictor carries the estimate to the newest sample), "
+            "so that poses are fused when they arrive instead of replaying the IMU; "
+            "0: the filter stays at the newest sample and every late pose is replayed")
+    latency_window: int = spec(32, ge=1, le=10000,
+                               doc="poses over which the smallest latency sets the horizon")
     history_s: float = spec(0.25, gt=0.0, le=2.0,
                             doc="how far back a late pose can still be fused")
     max_imu_rate_hz: float = spec(1000.0, gt=0.0, le=10000.0, doc="sizes the history ring")
@@ -95,6 +103,9 @@ class EstimatorConfig:
             raise ConfigValueError("sigma_alpha", "alpha^2 (n + kappa) must be positive")
         if self.history_s * self.max_imu_rate_hz < 2.0:
             raise ConfigValueError("history_s", "must hold at least two IMU periods")
+        if self.max_fusion_delay_s >= self.history_s:
+            raise ConfigValueError("max_fusion_delay_s", "must be below history_s (a pose "
+                                   "later than the horizon is replayed from the history)")
 
     @property
     def history_len(self) -> int:
