@@ -7,12 +7,22 @@ One instance serves the control loop::
     est.update_pose(capture_t_s, pos_w_m, q_wb)                  # every new MoCap frame
     state = est.estimate()                                       # every tick
 
-Timeline and delay compensation: every predict appends the state after it, plus the IMU input
-that produced it, to a ring covering ``history_s``. A pose captured at ``t_c`` (before the newest
-IMU sample) is fused at ``t_c``: the ring is rewound to the last state at or before ``t_c``, the
-state is propagated to exactly ``t_c`` with the IMU input of that interval, the pose is fused,
-and the remaining IMU inputs are replayed, rewriting the ring (pom / robot_localization style).
-A pose older than the ring is dropped and counted.
+Timeline and delay compensation (PX4 EKF2's delayed fusion horizon, pom's history): the filter
+runs ``fusion_delay_s`` behind the newest IMU sample, the smallest MoCap latency of the last
+``latency_window`` poses (at most ``max_fusion_delay_s``). IMU inputs newer than the filter
+wait in a queue; an output predictor integrates them (mean only, the same model) so that
+:meth:`Ukf.estimate` is always at the newest sample. A pose captured at ``t_c`` arrives when
+the filter is at or just before ``t_c``: the filter takes the queued inputs up to the IMU
+sample nearest ``t_c`` and fuses the pose there, moved to that sample's time with the
+velocity and rate (at most half an IMU period). No IMU sample is integrated twice, so a late
+pose costs one update instead of replaying its age in predicts. Whenever the filter moves,
+the queued outputs are re-based on it exactly (to first order), not smoothed as EKF2 does.
+A pose older than the filter (a latency above the horizon) is fused in the filter's own
+history: every predict appends its state and input to a ring covering ``history_s``, the
+ring is rewound to the sample nearest ``t_c``, the pose is fused and the remaining inputs are
+replayed, rewriting the ring (robot_localization style). Older than the ring: dropped, counted.
+With ``max_fusion_delay_s = 0`` the filter stays at the newest sample and every late pose is
+replayed; the tests check that both give the same estimate to a few micrometres.
 
 Robustness: a chi-square gate on the 6-D innovation skips an update (counted); after
 ``max_consecutive_rejections`` in a row the position and attitude are re-seeded from MoCap

@@ -49,6 +49,10 @@ class TiltLink(Protocol):
 
     def sync_cycle(self, timeout_s: float) -> ServoState: ...
 
+    def begin_cycle(self) -> None: ...
+
+    def finish_cycle(self, timeout_s: float) -> ServoState: ...
+
 
 @runtime_checkable
 class PoseLink(Protocol):

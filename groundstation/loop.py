@@ -226,10 +226,15 @@ class FlightLoop:
             # a faulted servo is retried at 2 Hz only (each failed cycle costs a timeout)
             sync_every = opts.servo_sync_every if servo_health is not ServoHealth.FAULT \
                 else 250
-            if opts.lockstep and n % sync_every == 0:
+            servo_cycle = opts.lockstep and n % sync_every == 0
+            if servo_cycle:
+                # Lockstep: the servo process talks to the bus while this tick computes (the
+                # simulated time stands still until `w` goes out); the measurement is used
+                # from the next tick on, as a free-running servo's would be.
                 try:
-                    servo_state = self.tilt.sync_cycle(0.3)
+                    self.tilt.begin_cycle()
                 except Exception as exc:  # a servo fault is a health state, not a crash
+                    servo_cycle = False
                     self._counters["servo_sync_failures"] += 1
                     log.debug("servo sync failed: %s", exc)
                     servo_state = self.tilt.latest()
@@ -308,6 +313,13 @@ class FlightLoop:
                 ref = land_here.reference(t_s, alpha)
                 tick = self.computer.step(tm, est_state, alpha, ref=ref, hold_tilt=True,
                                           force_ext_w_n=force_ext)
+            if servo_cycle:  # before set_tilt: the cycle wrote the previous goal
+                try:
+                    servo_state = self.tilt.finish_cycle(0.3)
+                except Exception as exc:
+                    self._counters["servo_sync_failures"] += 1
+                    log.debug("servo sync failed: %s", exc)
+                    servo_state = self.tilt.latest()
             if tick is not None and directive.motors_on:
                 spins = tick.cmd.spin_hz
                 if not directive.hold_tilt:

@@ -350,6 +350,8 @@ class FlightSession:
 
             fc = FlightCtrl.open(fc_uri, FlightCtrlConfig(imu_rate_hz=backend.imu_rate_hz))
             ident = fc.connect()
+            if lockstep:  # every sample answers our own `w`: read it in the loop's thread
+                fc.read_in_caller_thread()
             events.put_nowait(f"flight-ctrl: {ident.protocol} firmware {ident.firmware_id} "
                               f"on {fc_uri}")
             tilt = self.params.tilt

@@ -801,6 +801,7 @@ class TiltServo:
         self._conn: Any = None
         self._request_lock = threading.Lock()
         self._request_id = 0
+        self._cycle_id: int | None = None
         self._last: list[float] | None = None
         self._stopped = False
 
@@ -883,20 +884,26 @@ class TiltServo:
 
     # -- rare requests (preflight, bench): these wait for the servo process
     def _request(self, timeout_s: float, *request: Any) -> Any:
+        with self._request_lock:
+            request_id = self._send_request(*request)
+            return self._await_answer(request_id, request[0], timeout_s)
+
+    def _send_request(self, *request: Any) -> int:
         if self._runner is None:
             raise ServoError(self.config.uri, "servo not started")
+        self._request_id += 1
+        self._conn.send((self._request_id, *request))
+        return self._request_id
+
+    def _await_answer(self, request_id: int, what: str, timeout_s: float) -> Any:
         deadline = time.monotonic() + timeout_s
-        with self._request_lock:
-            self._request_id += 1
-            self._conn.send((self._request_id, *request))
-            while True:
-                # Answers to earlier requests that timed out are still in the pipe: skip them.
-                if not self._conn.poll(max(0.0, deadline - time.monotonic())):
-                    raise ServoCommError(self.config.uri,
-                                         f"{request[0]}: no answer in {timeout_s} s")
-                request_id, status, value = self._conn.recv()
-                if request_id == self._request_id:
-                    break
+        while True:
+            # Answers to earlier requests that timed out are still in the pipe: skip them.
+            if not self._conn.poll(max(0.0, deadline - time.monotonic())):
+                raise ServoCommError(self.config.uri, f"{what}: no answer in {timeout_s} s")
+            answer_id, status, value = self._conn.recv()
+            if answer_id == request_id:
+                break
         if status == "error":
             raise value
         return value
@@ -907,7 +914,26 @@ class TiltServo:
         For ``serve="on_request"`` (lockstep flights): the caller blocks for one bus round trip
         (about 1.3 ms), so the exchange happens at a fixed simulated time. Raises
         :class:`ServoCommError` if the servo process does not answer within ``timeout_s``."""
-        self._request(timeout_s, "cycle")
+        self.begin_cycle()
+        return self.finish_cycle(timeout_s)
+
+    def begin_cycle(self) -> None:
+        """Start one service cycle and return at once; :meth:`finish_cycle` waits for it.
+
+        Lets a lockstep loop compute while the servo process talks to the bus (the bus
+        exchange happens between the two calls: keep the simulated time fixed there)."""
+        with self._request_lock:
+            # a cycle never finished (its answer is skipped by id) is simply superseded
+            self._cycle_id = self._send_request("cycle")
+
+    def finish_cycle(self, timeout_s: float) -> ServoState:
+        """Wait for the cycle of :meth:`begin_cycle`; its measurement (``ServoCommError`` if the
+        servo process does not answer within ``timeout_s``)."""
+        with self._request_lock:
+            request_id, self._cycle_id = self._cycle_id, None
+            if request_id is None:
+                raise ServoError(self.config.uri, "no service cycle pending")
+            self._await_answer(request_id, "cycle", timeout_s)
         return self.latest()
 
     def probe(self, timeout_s: float = 2.0) -> ServoIdentity:

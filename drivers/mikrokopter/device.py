@@ -408,6 +408,8 @@ class FlightCtrl:
         self._listen_stock = False
         self._reader: threading.Thread | None = None
         self._stop = threading.Event()
+        self._reader_stop = threading.Event()
+        self._caller_reads = False      # no reader thread: the waits read the port themselves
         self._lost: TransportError | None = None
         self._connected = False
         # mailboxes (guarded by _cond)
@@ -530,7 +532,14 @@ class FlightCtrl:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0.0 or self._stop.is_set():
                     return None
-                self._cond.wait(remaining)
+                if self._caller_reads:
+                    self._cond.release()
+                    try:
+                        self._read_once()
+                    finally:
+                        self._cond.acquire()
+                else:
+                    self._cond.wait(remaining)
             self._imu_overwritten += self._imu_count - self._imu_taken - 1
             self._imu_taken = self._imu_count
             return self._imu
@@ -702,6 +711,17 @@ class FlightCtrl:
             self._frames_sent += 1
 
     def _wait_for(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
+        if self._caller_reads:
+            deadline = time.monotonic() + timeout_s
+            while True:
+                with self._cond:
+                    if self._lost is not None:
+                        raise self._lost
+                    if predicate():
+                        return True
+                if time.monotonic() >= deadline:
+                    return False
+                self._read_once()
         with self._cond:
             ok = self._cond.wait_for(lambda: predicate() or self._lost is not None, timeout_s)
             if self._lost is not None:
@@ -714,7 +734,7 @@ class FlightCtrl:
         return self
 
     def _ensure_reader(self) -> None:
-        if self._reader is None:
+        if self._reader is None and not self._caller_reads:
             self._reader = threading.Thread(target=self._read_loop, daemon=True,
                                             name=f"flightctrl-reader {self.device}")
             self._reader.start()
@@ -726,23 +746,41 @@ class FlightCtrl:
                 log.error("%s: %s", self.device, exc.message)
             self._cond.notify_all()
 
+    def read_in_caller_thread(self) -> None:
+        """Stop the reader thread: from now on :meth:`wait_next` and the other waits read the
+        port in the calling thread (one thread hand-over less per sample).
+
+        For a loop that owns the link alone, e.g. a lockstep flight where every sample
+        answers the loop's own ``w``; the snapshots (``motors``, ``battery``,
+        ``link_stats``...) then change only while the loop waits."""
+        self._reader_stop.set()
+        if self._reader is not None and self._reader is not threading.current_thread():
+            self._reader.join()
+        self._caller_reads = True
+
     def _read_loop(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data = self._transport.read(4096)
-            except TransportError as exc:
-                if not self._stop.is_set():
-                    self._mark_lost(exc)
+        while not (self._stop.is_set() or self._reader_stop.is_set()):
+            self._read_once()
+            if self._lost is not None:
                 return
-            if not data:
-                continue
-            t_ns = self._clock()
-            with self._cond:
-                if self._listen_stock:
-                    for frame in self._stock.feed(data):
-                        self._on_stock(frame)
-                for raw in self._tk3.feed(data):
-                    self._on_message(raw, t_ns)
+
+    def _read_once(self) -> None:
+        """One transport read (it waits up to the transport's read timeout) and its frames."""
+        try:
+            data = self._transport.read(4096)
+        except TransportError as exc:
+            if not self._stop.is_set():
+                self._mark_lost(exc)
+            return
+        if not data:
+            return
+        t_ns = self._clock()
+        with self._cond:
+            if self._listen_stock:
+                for frame in self._stock.feed(data):
+                    self._on_stock(frame)
+            for raw in self._tk3.feed(data):
+                self._on_message(raw, t_ns)
 
     def _on_message(self, raw: bytes, t_ns: int) -> None:
         """Decode and file one tk3 message (reader thread, ``_cond`` held)."""

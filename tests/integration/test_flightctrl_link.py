@@ -308,3 +308,30 @@ def test_that_probe_retries_a_silent_serial_port_at_the_stock_speed() -> None:
                   FlightCtrlConfig(identify_attempts=1, identify_timeout_s=0.05))
         # '?' and 'v' at 500000 baud, then 'v' alone at 57600
         assert silent.read() == b"^?$#bv@x\r#bv@x\r"
+
+
+def test_that_a_loop_reading_in_its_own_thread_gets_every_sample_and_motor_state(
+        make_link: MakeLink) -> None:
+    # Fixture: connected with the reader thread, then handed over to the caller's thread
+    emu, fc, vehicle = make_link(_lockstep(), FlightCtrlConfig(motor_rate_hz=100.0))
+    fc.read_in_caller_thread()
+    # Test: the motor start waits and the loop's waits now read the port themselves
+    started = fc.start_motors(timeout_s=TIMEOUT_S)
+    command = [60.0, 70.0, 80.0, 90.0, 100.0, 50.0]
+    samples = _fly(fc, 300, command)
+    motors = fc.wait_motor_update(TIMEOUT_S)
+    # Assert: no sample skipped, values exact, motors read back, no reader thread left
+    truth = _truth(emu)
+    seqs = [s.seq for s in samples]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+    assert all(s.gyro_rad_s == truth[s.seq].message.gyro_rad_s for s in samples)
+    assert started.all_spinning
+    assert motors is not None
+    for measured, wanted in zip(motors.speeds_hz, command, strict=True):
+        assert measured == pytest.approx(wanted, abs=wanted**2 / 5e5 + 1e-6)
+    assert vehicle.rotor_speeds_hz() == pytest.approx(command, abs=0.05)
+    assert not any(t.name.startswith("flightctrl-reader") for t in threading.enumerate())
+    # and a pulled cable is still a typed loss, seen by the waiting loop
+    emu.disconnect()
+    with pytest.raises(DeviceLostError):
+        _fly(fc, 1000, command, resend_s=0.1)
