@@ -632,11 +632,9 @@ class FlightCtrl:
         """Block until a new ``M`` frame arrives (or the timeout); the snapshot or None."""
         with self._cond:
             seen = self._motor_updates
-            if not self._cond.wait_for(
-                    lambda: self._motor_updates != seen or self._lost is not None, timeout_s):
-                return None
-            if self._lost is not None:
-                raise self._lost
+        if not self._wait_for(lambda: self._motor_updates != seen, timeout_s):
+            return None
+        with self._cond:
             return MotorsSnapshot(tuple(self._motors))
 
     def battery(self) -> BatterySample | None:
