@@ -10,11 +10,14 @@ or all sigma points of the UKF at once; the products are written as small matrix
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import numpy.typing as npt
 
 FloatArray = npt.NDArray[np.float64]
+Vec3Tuple = tuple[float, float, float]
+QuatTuple = tuple[float, float, float, float]
 
 IDENTITY: FloatArray = np.array([1.0, 0.0, 0.0, 0.0])
 
@@ -150,20 +153,45 @@ def angle_between(q_a: FloatArray, q_b: FloatArray) -> FloatArray:
 
 
 # -- single quaternions in plain floats: a few numpy calls on 4 numbers cost more than the math --
-def mul_exp_single(q: FloatArray, rotvec: FloatArray) -> FloatArray:
-    """q (x) Exp(rotvec), normalised, for one quaternion."""
-    w, x, y, z = q.tolist()
-    a, b, c = rotvec.tolist()
+def mul_tuple(a: Sequence[float], b: Sequence[float]) -> QuatTuple:
+    """Hamilton product a (x) b of two quaternions given as plain floats."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
+
+
+def conj_tuple(q: Sequence[float]) -> QuatTuple:
+    return (q[0], -q[1], -q[2], -q[3])
+
+
+def normalized_tuple(q: Sequence[float]) -> QuatTuple:
+    w, x, y, z = q
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    return (w / n, x / n, y / n, z / n)
+
+
+def mul_exp_tuple(q: Sequence[float], a: float, b: float, c: float) -> QuatTuple:
+    """q (x) Exp((a, b, c)), normalised."""
     angle = math.sqrt(a * a + b * b + c * c)
     cw = math.cos(0.5 * angle)
     k = math.sin(0.5 * angle) / angle if angle > 1e-12 else 0.5
-    a, b, c = a * k, b * k, c * k
-    rw = w * cw - x * a - y * b - z * c
-    rx = w * a + x * cw + y * c - z * b
-    ry = w * b - x * c + y * cw + z * a
-    rz = w * c + x * b - y * a + z * cw
-    n = math.sqrt(rw * rw + rx * rx + ry * ry + rz * rz)
-    return np.array([rw / n, rx / n, ry / n, rz / n])
+    return normalized_tuple(mul_tuple(q, (cw, a * k, b * k, c * k)))
+
+
+def rotate_tuple(q: Sequence[float], v: Sequence[float]) -> Vec3Tuple:
+    """R(q) v for one unit quaternion and one vector."""
+    w, x, y, z = q
+    a, b, c = v
+    # t = 2 q_v x v;  v' = v + w t + q_v x t
+    tx, ty, tz = 2.0 * (y * c - z * b), 2.0 * (z * a - x * c), 2.0 * (x * b - y * a)
+    return (a + w * tx + (y * tz - z * ty), b + w * ty + (z * tx - x * tz),
+            c + w * tz + (x * ty - y * tx))
+
+
+def mul_exp_single(q: FloatArray, rotvec: FloatArray) -> FloatArray:
+    """q (x) Exp(rotvec), normalised, for one quaternion."""
+    return np.array(mul_exp_tuple(q.tolist(), *rotvec.tolist()))
 
 
 def log_relative_single(q_a: FloatArray, q_b: FloatArray) -> FloatArray:
@@ -183,9 +211,4 @@ def log_relative_single(q_a: FloatArray, q_b: FloatArray) -> FloatArray:
 
 def rotate_single(q: FloatArray, v: FloatArray) -> FloatArray:
     """R(q) v for one unit quaternion and one vector."""
-    w, x, y, z = q.tolist()
-    a, b, c = v.tolist()
-    # t = 2 q_v x v;  v' = v + w t + q_v x t
-    tx, ty, tz = 2.0 * (y * c - z * b), 2.0 * (z * a - x * c), 2.0 * (x * b - y * a)
-    return np.array([a + w * tx + (y * tz - z * ty), b + w * ty + (z * tx - x * tz),
-                     c + w * tz + (x * ty - y * tx)])
+    return np.array(rotate_tuple(q.tolist(), v.tolist()))

@@ -58,13 +58,20 @@ import numpy.typing as npt
 from .config import TWO_SIDED, EstimatorConfig
 from .kernels import FastKernel, FilterpyKernel, Kernel
 from .quaternion import (
+    QuatTuple,
+    Vec3Tuple,
+    conj_tuple,
     left_matrix,
     log_relative_single,
     mul_exp_single,
+    mul_exp_tuple,
+    mul_tuple,
+    normalized_tuple,
     quat_conj,
     quat_normalize,
     quat_to_rot,
     rotate_single,
+    rotate_tuple,
 )
 from .types import (
     ACCEL_BIAS,
@@ -138,43 +145,6 @@ class _RestCollector:
 
 
 # -- the output predictor, in plain floats (a few numpy calls on 3-vectors cost more) ----------
-Vec3 = tuple[float, float, float]
-Quat = tuple[float, float, float, float]
-
-
-def _qmul(a: Sequence[float], b: Sequence[float]) -> Quat:
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
-
-
-def _qconj(q: Sequence[float]) -> Quat:
-    return (q[0], -q[1], -q[2], -q[3])
-
-
-def _qnormalized(q: Sequence[float]) -> Quat:
-    w, x, y, z = q
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    return (w / n, x / n, y / n, z / n)
-
-
-def _rotate(q: Sequence[float], v: Sequence[float]) -> Vec3:
-    w, x, y, z = q
-    a, b, c = v
-    tx, ty, tz = 2.0 * (y * c - z * b), 2.0 * (z * a - x * c), 2.0 * (x * b - y * a)
-    return (a + w * tx + (y * tz - z * ty), b + w * ty + (z * tx - x * tz),
-            c + w * tz + (x * ty - y * tx))
-
-
-def _mul_exp(q: Sequence[float], a: float, b: float, c: float) -> Quat:
-    """q (x) Exp((a, b, c)), normalised."""
-    angle = math.sqrt(a * a + b * b + c * c)
-    cw = math.cos(0.5 * angle)
-    k = math.sin(0.5 * angle) / angle if angle > 1e-12 else 0.5
-    return _qnormalized(_qmul(q, (cw, a * k, b * k, c * k)))
-
-
 class _Pending(NamedTuple):
     """One IMU input the filter has not taken yet, and the output state at its time (stored
     without the correction of :class:`_OutputPredictor`)."""
@@ -182,9 +152,9 @@ class _Pending(NamedTuple):
     t_s: float
     gyro_in: FloatArray
     accel_in: FloatArray
-    pos: Vec3
-    vel: Vec3
-    q: Quat
+    pos: Vec3Tuple
+    vel: Vec3Tuple
+    q: QuatTuple
 
 
 class _OutputPredictor:
@@ -202,9 +172,9 @@ class _OutputPredictor:
         self._reset()
 
     def _reset(self) -> None:
-        self._a: Vec3 = (0.0, 0.0, 0.0)
-        self._b: Vec3 = (0.0, 0.0, 0.0)
-        self._dq: Quat = (1.0, 0.0, 0.0, 0.0)
+        self._a: Vec3Tuple = (0.0, 0.0, 0.0)
+        self._b: Vec3Tuple = (0.0, 0.0, 0.0)
+        self._dq: QuatTuple = (1.0, 0.0, 0.0, 0.0)
 
     def __bool__(self) -> bool:
         return bool(self._queue)
@@ -223,16 +193,16 @@ class _OutputPredictor:
         entry = self._queue.popleft()
         return entry
 
-    def corrected(self, e: _Pending) -> tuple[Vec3, Vec3, Quat]:
+    def corrected(self, e: _Pending) -> tuple[Vec3Tuple, Vec3Tuple, QuatTuple]:
         a, b, t = self._a, self._b, e.t_s
         p, v = e.pos, e.vel
         return ((p[0] + a[0] + b[0] * t, p[1] + a[1] + b[1] * t, p[2] + a[2] + b[2] * t),
-                (v[0] + b[0], v[1] + b[1], v[2] + b[2]), _qmul(self._dq, e.q))
+                (v[0] + b[0], v[1] + b[1], v[2] + b[2]), mul_tuple(self._dq, e.q))
 
-    def newest(self) -> tuple[Vec3, Vec3, Quat]:
+    def newest(self) -> tuple[Vec3Tuple, Vec3Tuple, QuatTuple]:
         return self.corrected(self._queue[-1])
 
-    def correct(self, dp: Vec3, dv: Vec3, t_ref: float, dq: Quat) -> None:
+    def correct(self, dp: Vec3Tuple, dv: Vec3Tuple, t_ref: float, dq: QuatTuple) -> None:
         """Add dp + dv (t - t_ref) to the positions, dv to the velocities, turn by dq."""
         if not self._queue:
             self._reset()
@@ -242,7 +212,7 @@ class _OutputPredictor:
                    a[2] + dp[2] - dv[2] * t_ref)
         self._b = (b[0] + dv[0], b[1] + dv[1], b[2] + dv[2])
         # unit, so that repeated corrections never change the outputs' norm
-        self._dq = _qnormalized(_qmul(dq, self._dq))
+        self._dq = normalized_tuple(mul_tuple(dq, self._dq))
 
     def push(self, t: float, dt: float, gyro_in: FloatArray, accel_in: FloatArray,
              p0: Sequence[float], v0: Sequence[float], q0: Sequence[float],
@@ -250,18 +220,18 @@ class _OutputPredictor:
         """Propagate the (corrected) output (p0, v0, q0) over dt and queue it at t."""
         if not self._queue:
             self._reset()
-        ax, ay, az = _rotate(q0, specific_b)
+        ax, ay, az = rotate_tuple(q0, specific_b)
         az -= self._g
         h = 0.5 * dt * dt
         p = (p0[0] + dt * v0[0] + h * ax, p0[1] + dt * v0[1] + h * ay,
              p0[2] + dt * v0[2] + h * az)
         v = (v0[0] + dt * ax, v0[1] + dt * ay, v0[2] + dt * az)
-        q = _mul_exp(q0, omega_b[0] * dt, omega_b[1] * dt, omega_b[2] * dt)
+        q = mul_exp_tuple(q0, omega_b[0] * dt, omega_b[1] * dt, omega_b[2] * dt)
         a, b = self._a, self._b      # store without the correction
         self._queue.append(_Pending(
             t, gyro_in, accel_in,
             (p[0] - a[0] - b[0] * t, p[1] - a[1] - b[1] * t, p[2] - a[2] - b[2] * t),
-            (v[0] - b[0], v[1] - b[1], v[2] - b[2]), _qmul(_qconj(self._dq), q)))
+            (v[0] - b[0], v[1] - b[1], v[2] - b[2]), mul_tuple(conj_tuple(self._dq), q)))
 
 
 class Ukf:
@@ -571,7 +541,7 @@ class Ukf:
         self._pending.correct(
             (x[0] - p_ref[0], x[1] - p_ref[1], x[2] - p_ref[2]),
             (x[3] - v_ref[0], x[4] - v_ref[1], x[5] - v_ref[2]),
-            t_ref, _qmul(tuple(self._q_ref.tolist()), _qconj(q_ref)))
+            t_ref, mul_tuple(tuple(self._q_ref.tolist()), conj_tuple(q_ref)))
 
     def _output_q(self) -> FloatArray:
         return self._q_ref if not self._pending else np.array(self._pending.newest()[2])

@@ -76,6 +76,7 @@ class LoopResult:
     estimator_poses_rejected: int
     telemetry_dropped: int
     loop_wall_s: float = 0.0  # wall time from the first IMU sample to the end
+    estimator_fusion_delay_s: float = 0.0  # how far the UKF ran behind the newest sample
     counters: dict[str, int] = field(default_factory=dict)
 
 
@@ -357,6 +358,7 @@ class FlightLoop:
             flight_time_s=(t_s - takeoff_t_s) if takeoff_t_s is not None else 0.0,
             end_reason=end_reason,
             estimator_poses_rejected=self.ukf.health().poses_rejected,
+            estimator_fusion_delay_s=self.ukf.fusion_delay_s,
             telemetry_dropped=self._counters["telemetry_dropped"],
             counters=dict(self._counters),
         )

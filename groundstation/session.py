@@ -484,6 +484,7 @@ def summary_lines(outcome: SessionOutcome) -> list[str]:
              f"jitter p99 {t.jitter_p99_ms:.3f} ms; IMU in -> w out p50 "
              f"{t.latency_p50_ms:.3f} ms, p99 {t.latency_p99_ms:.3f} ms",
              f"faults: {len(r.faults)}; poses rejected {r.estimator_poses_rejected}; "
+             f"UKF fusion horizon {1e3 * r.estimator_fusion_delay_s:.1f} ms behind the IMU; "
              f"telemetry rows dropped {r.telemetry_dropped}"]
     lines += [f"  fault {f}" for f in r.faults]
     lines.append(f"flight record: {outcome.record_path}")

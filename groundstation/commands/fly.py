@@ -125,6 +125,7 @@ def flight_summary(outcome: Any, params: Any, session: str) -> dict[str, Any]:
         "transitions": [f"{tr.t_s:.3f} s {tr.from_state.name} -> {tr.to_state.name}: "
                         f"{tr.reason}" for tr in r.transitions],
         "poses_rejected": r.estimator_poses_rejected,
+        "fusion_delay_ms": 1e3 * r.estimator_fusion_delay_s,
         "telemetry_dropped": r.telemetry_dropped,
         "record": str(outcome.record_path),
         "preflight": [{"check": n, "pass": ok, "value": v} for n, ok, v in outcome.preflight],
