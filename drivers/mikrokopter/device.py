@@ -18,6 +18,9 @@ newest state of each motor, battery and magnetometer. IMU sample times are rebui
 sequence number and the configured period (passive synchronisation: the offset follows the
 earliest arrival, and resets after a jump of more than 16 samples). Link statistics (measured
 rates, gaps, staleness, every kind of dropped frame) come from :meth:`FlightCtrl.link_stats`.
+A loop that owns the link alone (a lockstep flight, where every sample answers the loop's own
+``w``) can take the receive side over (:meth:`FlightCtrl.read_in_caller_thread`): the same
+processing then runs inside its waits, which saves a thread hand-over per sample.
 
 The write side is called from the control loop: one ``w`` frame per tick
 (:meth:`FlightCtrl.send_rotor_speeds_hz`), about 15 bytes, under a lock shared with the other
