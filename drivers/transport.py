@@ -2,8 +2,9 @@
 
 A transport only moves bytes; framing lives in the codecs. Contract (:class:`Transport`):
 
-- ``read(max_bytes)`` waits at most ``read_timeout_s`` (default 50 ms) for input and returns
-  what is there (1..max_bytes bytes), or ``b""`` when nothing came. It never returns a partial
+- ``read(max_bytes, timeout_s=None)`` waits at most ``timeout_s`` (``None``: the transport's
+  ``read_timeout_s``, default 50 ms) for input and returns what is there (1..max_bytes bytes),
+  or ``b""`` when nothing came. It never returns a partial
   frame on purpose: the codecs are incremental parsers fed arbitrary chunks.
 - ``write(data)`` sends all of ``data`` or raises.
 - ``close()`` is idempotent.
@@ -77,8 +78,9 @@ class Transport(Protocol):
 
     name: str
 
-    def read(self, max_bytes: int = 4096) -> bytes:
-        """Up to ``max_bytes`` received bytes; ``b""`` if none came within the read timeout."""
+    def read(self, max_bytes: int = 4096, timeout_s: float | None = None) -> bytes:
+        """Up to ``max_bytes`` received bytes; ``b""`` if none came within ``timeout_s`` (None:
+        the transport's own read timeout)."""
         ...
 
     def write(self, data: bytes) -> None:
@@ -169,11 +171,12 @@ class FdTransport:
     def fileno(self) -> int:
         return self._fd
 
-    def read(self, max_bytes: int = 4096) -> bytes:
+    def read(self, max_bytes: int = 4096, timeout_s: float | None = None) -> bytes:
         if self._closed:
             raise DeviceLostError(self.name, "transport is closed")
+        wait_s = self.read_timeout_s if timeout_s is None else max(timeout_s, 0.0)
         try:
-            ready = select.select([self._fd], [], [], self.read_timeout_s)[0]
+            ready = select.select([self._fd], [], [], wait_s)[0]
             if not ready:
                 return b""
             data = os.read(self._fd, max_bytes)
@@ -334,10 +337,10 @@ class LoopTransport:
         self._cond = threading.Condition()
         self._closed = False
 
-    def read(self, max_bytes: int = 4096) -> bytes:
+    def read(self, max_bytes: int = 4096, timeout_s: float | None = None) -> bytes:
         with self._cond:
             if not self._buf and not self._closed:
-                self._cond.wait(self.read_timeout_s)
+                self._cond.wait(self.read_timeout_s if timeout_s is None else max(timeout_s, 0.0))
             if self._closed:
                 raise DeviceLostError(self.name, "transport is closed")
             data = bytes(self._buf[:max_bytes])
@@ -380,8 +383,8 @@ class SpyTransport:
             else:
                 log.info("%s %s", self.name, line.rstrip())
 
-    def read(self, max_bytes: int = 4096) -> bytes:
-        data = self._inner.read(max_bytes)
+    def read(self, max_bytes: int = 4096, timeout_s: float | None = None) -> bytes:
+        data = self._inner.read(max_bytes, timeout_s)
         if data:
             self._log("RX", data)
         return data

@@ -538,7 +538,7 @@ class FlightCtrl:
                 if self._caller_reads:
                     self._cond.release()
                     try:
-                        self._read_once()
+                        self._read_once(remaining)
                     finally:
                         self._cond.acquire()
                 else:
@@ -720,9 +720,10 @@ class FlightCtrl:
                         raise self._lost
                     if predicate():
                         return True
-                if time.monotonic() >= deadline:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0.0:
                     return False
-                self._read_once()
+                self._read_once(remaining)
         with self._cond:
             ok = self._cond.wait_for(lambda: predicate() or self._lost is not None, timeout_s)
             if self._lost is not None:
@@ -765,10 +766,11 @@ class FlightCtrl:
             if self._lost is not None:
                 return
 
-    def _read_once(self) -> None:
-        """One transport read (it waits up to the transport's read timeout) and its frames."""
+    def _read_once(self, timeout_s: float | None = None) -> None:
+        """One transport read (waiting up to ``timeout_s``, None: the transport's read timeout)
+        and its frames."""
         try:
-            data = self._transport.read(4096)
+            data = self._transport.read(4096, timeout_s)
         except TransportError as exc:
             if not self._stop.is_set():
                 self._mark_lost(exc)

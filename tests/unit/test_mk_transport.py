@@ -13,6 +13,7 @@ from drivers.errors import DeviceLostError, DeviceOpenError, TransportUriError
 from drivers.transport import (
     TRANSPORTS,
     LoopTransport,
+    SpyTransport,
     Transport,
     TransportFactory,
     TransportUri,
@@ -136,3 +137,26 @@ def test_that_the_pty_transport_does_not_leak_descriptors() -> None:
         for _ in range(5):
             open_transport(f"pty://{pty.path}").close()
     assert len(os.listdir("/proc/self/fd")) == before
+
+
+@pytest.mark.parametrize("through_spy", [False, True])
+def test_that_a_read_timeout_given_per_call_overrides_the_transports_own(
+        through_spy: bool) -> None:
+    # Fixture: the transport's own read timeout is an hour; a call may ask for less
+    with PtyEndpoint() as pty:
+        t = open_transport(f"pty://{pty.path}")
+        t.read_timeout_s = 3600.0  # type: ignore[attr-defined]
+        if through_spy:
+            t = SpyTransport(t, None)
+        try:
+            # Test / Assert: nothing waiting -> empty at once instead of after an hour
+            assert t.read(4096, 0.0) == b""
+            pty.write(b"^I$")
+            got = b""
+            for _ in range(100):
+                got += t.read(4096, 5.0)
+                if len(got) >= 3:
+                    break
+            assert got == b"^I$"
+        finally:
+            t.close()
