@@ -190,8 +190,7 @@ class _OutputPredictor:
         return self._queue[0].t_s if self._queue else math.inf
 
     def popleft(self) -> _Pending:
-        entry = self._queue.popleft()
-        return entry
+        return self._queue.popleft()
 
     def corrected(self, e: _Pending) -> tuple[Vec3Tuple, Vec3Tuple, QuatTuple]:
         a, b, t = self._a, self._b, e.t_s
@@ -500,8 +499,9 @@ class Ukf:
     # without replaying any IMU sample. The output predictor integrates the queued inputs
     # (mean only, same model) to the newest sample; whenever the filter moves, the difference
     # between the filter's state and the output at the filter's time is added to every newer
-    # output (position also by the velocity difference times the time since), i.e. the
-    # outputs are re-based on the filter exactly to first order, without EKF2's smoothing lag.
+    # output (position also by the velocity difference times the time since; applied lazily,
+    # see _OutputPredictor), i.e. the outputs are re-based on the filter exactly to first
+    # order, without EKF2's smoothing lag.
     def _note_latency(self, latency_s: float) -> None:
         lat = self._latencies
         lat[self._latency_i] = latency_s
