@@ -4,12 +4,22 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from drivers.dynamixel import ErrorBit, Mode, Reg, ServoHealth, TiltServo, TiltServoConfig
+from drivers.dynamixel import (
+    ErrorBit,
+    Mode,
+    Reg,
+    ServoCommError,
+    ServoError,
+    ServoHealth,
+    TiltServo,
+    TiltServoConfig,
+)
 from sim_backend.emulators.dynamixel_p1 import EmulatedMX28
 from sim_backend.vehicle import BenchVehicle
 
@@ -189,3 +199,29 @@ def test_that_in_lockstep_the_servo_follows_the_simulated_clock(tmp_path: Path) 
     # Moving Speed 292 (9.99 deg/s of tilt) did, to within one physics step.
     assert frozen == 0.0
     assert tilt / DEG == pytest.approx(1.5 * 292 * 0.114 * 6 * 0.05, abs=0.03)
+
+
+def test_that_an_on_request_servo_runs_one_cycle_per_begin_finish_pair(
+        emulator: EmulatedMX28) -> None:
+    # Fixture: a lockstep-style servo, serviced only when asked
+    servo = TiltServo(config_for(emulator, serve="on_request", rate_limit_goal=False)).start()
+    try:
+        deadline = time.monotonic() + WAIT_S
+        while True:  # the servo process answers "not connected" until it has configured it
+            try:
+                first = servo.sync_cycle(WAIT_S)
+                break
+            except ServoCommError:
+                assert time.monotonic() < deadline, "the servo never connected"
+        # Test: a goal set before the pair is written by it, and measured by it
+        servo.set_tilt(10 * DEG)
+        servo.begin_cycle()
+        state = servo.finish_cycle(WAIT_S)
+        # Assert: exactly one more cycle, carrying the new goal
+        assert state.seq == first.seq + 1
+        assert state.goal_tilt_rad == pytest.approx(10 * DEG, abs=TILT_STEP_RAD)
+        assert servo.latest().seq == state.seq  # nothing runs unasked
+        with pytest.raises(ServoError, match="no service cycle pending"):
+            servo.finish_cycle(WAIT_S)
+    finally:
+        servo.stop()
