@@ -70,7 +70,6 @@ from .quaternion import (
     quat_conj,
     quat_normalize,
     quat_to_rot,
-    rotate_single,
     rotate_tuple,
 )
 from .types import (
@@ -416,12 +415,7 @@ class Ukf:
         self._note_latency(self._now_s - t_c)
         if t_c < self._t_s - self._half_step_s():
             # older than the filter's time: replay the filter's own history
-            p_r, v_r, q_r = self._x[POS].tolist(), self._x[VEL].tolist(), self._q_ref.tolist()
-            t_r = self._t_s
-            verdict = self._fuse_in_past(t_c, pos, q_m)
-            if verdict is PoseVerdict.ACCEPTED:
-                self._correct_outputs(p_r, v_r, q_r, t_r)
-            return verdict
+            return self._fuse_in_past(t_c, pos, q_m)
         # at or after the filter's time: bring the filter to the IMU sample nearest the capture
         # time and fuse there
         self._advance_filter(t_c)
@@ -543,8 +537,8 @@ class Ukf:
             (x[3] - v_ref[0], x[4] - v_ref[1], x[5] - v_ref[2]),
             t_ref, mul_tuple(tuple(self._q_ref.tolist()), conj_tuple(q_ref)))
 
-    def _output_q(self) -> FloatArray:
-        return self._q_ref if not self._pending else np.array(self._pending.newest()[2])
+    def _output_q(self) -> Sequence[float]:
+        return self._q_ref.tolist() if not self._pending else self._pending.newest()[2]
 
     def _half_step_s(self) -> float:
         n_hist = len(self._hist_t)
@@ -666,7 +660,9 @@ class Ukf:
             dt = float(self._hist_t[i] - self._hist_t[(i - 1) % n_hist])
             x, P, q = self._propagate(x, P, q, dt, self._hist_gyro[i], self._hist_accel[i])
             self._store(x, P, q, i)
+        p_r, v_r, q_r = self._x[POS].tolist(), self._x[VEL].tolist(), self._q_ref.tolist()
         self._x, self._P, self._q_ref = x, P, q
+        self._correct_outputs(p_r, v_r, q_r, self._t_s)
         return self._accepted_pose(t_c)
 
     def _shift_pose(self, pos: FloatArray, q_m: FloatArray, dt_s: float, x: FloatArray,
@@ -790,7 +786,8 @@ class Ukf:
                 self._force_produced_b = self._force_produced_b + blend * (
                     f_cmd - self._force_produced_b)
             f_cmd = self._force_produced_b
-        z = rotate_single(self._output_q(), m * (accel - self._x[ACCEL_BIAS]) - f_cmd)
+        z = np.array(rotate_tuple(self._output_q(),
+                                  (m * (accel - self._x[ACCEL_BIAS]) - f_cmd).tolist()))
         # per-sample accelerometer noise variance (N^2 f / 2) plus the bias uncertainty
         P = self._P
         r = m * m * (TWO_SIDED * cfg.accel_noise_m_s2_sqrt_hz ** 2 / dt

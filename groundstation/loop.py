@@ -35,6 +35,7 @@ from controller.params import VehicleParams
 from controller.pipeline import ControlTick, FlightComputer, LandHere
 from controller.reference import VehicleState, rot_to_quat
 from drivers.dynamixel.device import ServoHealth as DxlHealth
+from drivers.dynamixel.device import ServoState
 from drivers.errors import DeviceLostError, DriverError
 from drivers.mikrokopter.device import LinkHealth
 from estimator.types import HealthFlag
@@ -236,9 +237,7 @@ class FlightLoop:
                     self.tilt.begin_cycle()
                 except Exception as exc:  # a servo fault is a health state, not a crash
                     servo_cycle = False
-                    self._counters["servo_sync_failures"] += 1
-                    log.debug("servo sync failed: %s", exc)
-                    servo_state = self.tilt.latest()
+                    servo_state = self._servo_sync_failed(exc)
             elif not opts.lockstep:
                 servo_state = self.tilt.latest()
             servo_health = _servo_health(servo_state)
@@ -318,9 +317,7 @@ class FlightLoop:
                 try:
                     servo_state = self.tilt.finish_cycle(0.3)
                 except Exception as exc:
-                    self._counters["servo_sync_failures"] += 1
-                    log.debug("servo sync failed: %s", exc)
-                    servo_state = self.tilt.latest()
+                    servo_state = self._servo_sync_failed(exc)
             if tick is not None and directive.motors_on:
                 spins = tick.cmd.spin_hz
                 if not directive.hold_tilt:
@@ -364,6 +361,12 @@ class FlightLoop:
         )
 
     # -- pieces ----------------------------------------------------------------------------
+    def _servo_sync_failed(self, exc: Exception) -> ServoState:
+        """A lockstep servo cycle that failed: counted; the last measurement stands."""
+        self._counters["servo_sync_failures"] += 1
+        log.debug("servo sync failed: %s", exc)
+        return self.tilt.latest()
+
     def _exchange_with_operators(self, battery_v: float) -> None:
         """Every 0.1 s: publish the state for operator surfaces, take their requests."""
         if self.shared_status is not None:

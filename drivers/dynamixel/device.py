@@ -139,8 +139,8 @@ class TiltServoConfig:
     assume_homed: bool = spec(True, doc="trust zero_offset_steps at start (else home() first)")
     serve: Literal["periodic", "on_request"] = spec(
         "periodic", doc="periodic: a service cycle every 1/rate_hz s of wall time; on_request: "
-        "only when the owner calls sync_cycle() (a lockstep flight, where the cycle must happen "
-        "at a fixed simulated time)")
+        "only when the owner calls sync_cycle() or begin_cycle()/finish_cycle() (a lockstep "
+        "flight, where the cycle must happen at a fixed simulated time)")
 
     def __post_init__(self) -> None:
         parse_servo_uri(self.uri)  # raises TransportUriError, a ValueError

@@ -527,22 +527,12 @@ class FlightCtrl:
         Samples that arrived while the caller was busy are skipped (counted as overwritten),
         never queued. Raises :class:`DeviceLostError` once the device is gone.
         """
-        deadline = time.monotonic() + timeout_s
+        if not self._wait_for(lambda: self._imu_count != self._imu_taken or self._stop.is_set(),
+                              timeout_s):
+            return None
         with self._cond:
-            while self._imu_count == self._imu_taken:
-                if self._lost is not None:
-                    raise self._lost
-                remaining = deadline - time.monotonic()
-                if remaining <= 0.0 or self._stop.is_set():
-                    return None
-                if self._caller_reads:
-                    self._cond.release()
-                    try:
-                        self._read_once(remaining)
-                    finally:
-                        self._cond.acquire()
-                else:
-                    self._cond.wait(remaining)
+            if self._imu_count == self._imu_taken:      # stopped
+                return None
             self._imu_overwritten += self._imu_count - self._imu_taken - 1
             self._imu_taken = self._imu_count
             return self._imu
