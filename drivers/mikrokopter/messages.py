@@ -53,7 +53,7 @@ import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import Enum
-from typing import ClassVar
+from typing import ClassVar, Self
 
 from config.schema import ConfigValueError
 
@@ -558,18 +558,25 @@ class VersionInfo:
 
 
 @dataclass(frozen=True, slots=True)
-class DebugRequest:
-    """Stock ``d``: send ``D`` every ``interval_ms`` (10 ms steps; 0 = off; renew within 4 s)."""
+class _IntervalRequest:
+    """A stock subscription: one ``u8`` interval in 10 ms steps (0 = off; renew within 4 s)."""
 
-    CMD: ClassVar[bytes] = b"d"
+    CMD: ClassVar[bytes]
     interval_ms: int
 
     @classmethod
-    def decode(cls, data: bytes) -> DebugRequest:
+    def decode(cls, data: bytes) -> Self:
         return cls(_need(cls.CMD, data, 1)[0] * 10)
 
     def payload(self) -> bytes:
         return bytes((min(255, self.interval_ms // 10),))
+
+
+@dataclass(frozen=True, slots=True)
+class DebugRequest(_IntervalRequest):
+    """Stock ``d``: send ``D`` every ``interval_ms``."""
+
+    CMD: ClassVar[bytes] = b"d"
 
 
 @dataclass(frozen=True, slots=True)
@@ -596,16 +603,10 @@ class DebugOut:
 
 
 @dataclass(frozen=True, slots=True)
-class Data3DRequest:
+class Data3DRequest(_IntervalRequest):
+    """Stock ``c``: send ``C`` every ``interval_ms``."""
+
     CMD: ClassVar[bytes] = b"c"
-    interval_ms: int
-
-    @classmethod
-    def decode(cls, data: bytes) -> Data3DRequest:
-        return cls(_need(cls.CMD, data, 1)[0] * 10)
-
-    def payload(self) -> bytes:
-        return bytes((min(255, self.interval_ms // 10),))
 
 
 @dataclass(frozen=True, slots=True)
