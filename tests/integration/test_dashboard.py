@@ -14,13 +14,12 @@ from typing import Any
 
 import numpy as np
 import pytest
+import rerun as rr  # a required dependency: a broken install fails, never skips
 
 from config import find_config
 from groundstation.dashboard import PANEL_ENTITIES, SCALAR_SERIES, drain_into_dashboard
 from groundstation.record import RECORD_DTYPE, FlightRecord, read_record
 from groundstation.telemetry import TelemetryRing
-
-rr = pytest.importorskip("rerun")
 
 SHORT_MISSION = """\
 schema: fasthex.mission
