@@ -13,6 +13,11 @@ The loop stops the motors when the mission is over and hands one row per tick to
 :class:`RowSink`, in the field order of the flight record (``groundstation.record.RECORD_DTYPE``,
 which the composition root passes in as a ``RecordWriter``; sim_backend does not import the
 ground station).
+
+A flight that crashes ends at the crash (:class:`CrashLimits`, :class:`Crash`): a touchdown
+faster than :data:`SAFE_TOUCHDOWN_SPEED_M_S`, the vehicle leaving the workspace box, or a
+non-finite true state or estimate. What follows a crash has no physical meaning, so the loop
+stops there and the result names the reason.
 """
 
 from __future__ import annotations
@@ -45,6 +50,63 @@ if TYPE_CHECKING:
     from estimator import EstimatorConfig
 
 CONTROL_RATE_HZ = 500.0
+
+SAFE_TOUCHDOWN_SPEED_M_S = 1.0
+"""Fastest vertical speed at ground contact that still counts as a landing (m/s).
+
+A planned touchdown (the missions' land segments) arrives at about 0.1 m/s. 1.0 m/s is ten
+times that, the speed of a free drop from v^2 / (2 g) = 5 cm, and 0.5 m v^2 = 1.6 J into the
+landing gear of the 3.1 kg prototype: above it the gear or the propellers take damage, and what
+the simulator records as an inelastic stop is in truth an impact.
+"""
+
+
+@dataclass(frozen=True)
+class CrashLimits:
+    """What ends a simulated flight as a crash. ``None`` bounds are not checked."""
+
+    max_touchdown_speed_m_s: float = SAFE_TOUCHDOWN_SPEED_M_S
+    workspace_min_w_m: Vec3 | None = None
+    workspace_max_w_m: Vec3 | None = None
+
+
+@dataclass(frozen=True)
+class Crash:
+    """Why and when (mission time, s) a flight crashed; ``kind``: ``impact``, ``workspace`` or
+    ``non-finite``."""
+
+    t_s: float
+    kind: str
+    reason: str
+
+
+def _finite(*vectors: tuple[float, ...]) -> bool:
+    # a sum is NaN/inf as soon as one term is (and cheaper than a test per element)
+    return math.isfinite(sum(sum(v) for v in vectors))
+
+
+def check_crash(t_s: float, limits: CrashLimits, truth: VehicleState, estimate: VehicleState,
+                touchdown_speed_m_s: float | None) -> Crash | None:
+    """The crash of this tick, if any: ``touchdown_speed_m_s`` is the vertical speed of a
+    touchdown that happened during the tick (``None``: none)."""
+    if not _finite(truth.pos_w_m, truth.vel_w_m_s, truth.q_wb, truth.omega_b_rad_s):
+        return Crash(t_s, "non-finite", f"non-finite vehicle state at t = {t_s:.3f} s")
+    if not _finite(estimate.pos_w_m, estimate.vel_w_m_s, estimate.q_wb,
+                   estimate.omega_b_rad_s):
+        return Crash(t_s, "non-finite", f"non-finite state estimate at t = {t_s:.3f} s")
+    if touchdown_speed_m_s is not None and touchdown_speed_m_s > limits.max_touchdown_speed_m_s:
+        return Crash(t_s, "impact", f"impact at {touchdown_speed_m_s:.2f} m/s vertical at "
+                     f"t = {t_s:.3f} s (a safe touchdown is <= "
+                     f"{limits.max_touchdown_speed_m_s:.2f} m/s)")
+    lo, hi = limits.workspace_min_w_m, limits.workspace_max_w_m
+    if lo is not None and hi is not None:
+        p = truth.pos_w_m
+        for axis, (x, a, b) in enumerate(zip(p, lo, hi, strict=True)):
+            if not a <= x <= b:
+                where = ", ".join(f"{c:.2f}" for c in p)
+                return Crash(t_s, "workspace", f"left the workspace at t = {t_s:.3f} s: "
+                             f"({where}) m, {'xyz'[axis]} outside [{a:g}, {b:g}] m")
+    return None
 
 
 class StateSource(Protocol):
@@ -167,6 +229,7 @@ class FlightResult:
     sim_time_s: float
     wall_time_s: float
     touchdown_speeds_m_s: tuple[float, ...]
+    crash: Crash | None = None
 
     @property
     def realtime_factor(self) -> float:
@@ -180,7 +243,8 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
                 state_source: StateSource | None = None,
                 tilt_override_rad: float | None = None,
                 preroll_s: float = 0.0,
-                on_tick: Callable[[float, FastHexSimulator], None] | None = None
+                on_tick: Callable[[float, FastHexSimulator], None] | None = None,
+                crash_limits: CrashLimits | None = None,
                 ) -> FlightResult:
     """Fly ``mission`` in the simulator from rest on the ground, one row per tick to ``sink``.
 
@@ -192,6 +256,8 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
     commanded body force and its force estimate is handed to the controller (used when the
     vehicle's ``force_feedforward`` is on). ``on_tick(t, sim)`` is called once per mission tick
     after the state source, before the controller (analysis: the simulator's truth).
+    ``crash_limits`` (default :class:`CrashLimits` with no workspace) end the flight at a crash,
+    named in the result's ``crash``; the crash tick is the last row.
     Returns the metadata a record header should carry, with timing.
     """
     computer = FlightComputer(params, mission, tilt_override_rad=tilt_override_rad)
@@ -211,11 +277,15 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
     dt = 1.0 / CONTROL_RATE_HZ
     n_ticks = round(end_s * CONTROL_RATE_HZ)
     c_f = params.rotors.thrust_coeff_n_per_hz2
+    limits = crash_limits if crash_limits is not None else CrashLimits()
+    crash: Crash | None = None
     wall0 = time.perf_counter()
     for _ in range(round(preroll_s * CONTROL_RATE_HZ)):
         source.update(sim.now_s(), sim.read_imu(), sim.poll_mocap())
         sim.advance(dt)
     t_offset = sim.now_s()
+    touchdowns = len(sim.touchdown_speeds_m_s)
+    ticks = 0
     for k in range(n_ticks):
         t = k * dt
         imu = sim.read_imu()
@@ -249,5 +319,14 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
             cmd.f_r_w_n, cmd.u_f_b_n, cmd.u_tau_b_n_m, cmd.r_xy_n, cmd.theta_rad, eta,
         ))
         sim.advance(dt)
+        ticks += 1
+        touchdown = None
+        if len(sim.touchdown_speeds_m_s) > touchdowns:  # ground contact during this step
+            touchdown = max(sim.touchdown_speeds_m_s[touchdowns:])
+            touchdowns = len(sim.touchdown_speeds_m_s)
+        crash = check_crash(t, limits, s, est, touchdown)
+        if crash is not None:
+            break
     wall = time.perf_counter() - wall0
-    return FlightResult(meta, n_ticks * dt + t_offset, wall, tuple(sim.touchdown_speeds_m_s))
+    return FlightResult(meta, ticks * dt + t_offset, wall, tuple(sim.touchdown_speeds_m_s),
+                        crash)

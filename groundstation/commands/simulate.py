@@ -17,6 +17,13 @@ JSON keys: ``mission``, ``vehicle``, ``preset``, ``seed``, ``estimator``, ``sim_
 ``<phase>_internal_force_loss_mean_frac`` (1 - eta_f); ``all_spin_within_limits`` (1 or 0).
 Counts (``*_ticks``, ``touchdowns``) and ``sim_s_per_wall_s`` carry their unit in the name.
 Phases as in :mod:`groundstation.metrics`.
+
+Verdict: ``verdict`` is ``"ok"`` or ``"crash"``, with ``crash_reason`` (text, ``null`` when ok),
+``crash_kind`` (``impact``, ``workspace``, ``non-finite``) and ``crash_t_s``. A crash is a
+touchdown faster than ``--max-touchdown-speed`` (default
+:data:`sim_backend.closed_loop.SAFE_TOUCHDOWN_SPEED_M_S`, 1.0 m/s, derived there), the vehicle
+outside the workspace box (default: a session's default geofence), or a non-finite true state or
+estimate; the flight ends at the crash and the command exits 1 with the reason on stderr.
 """
 
 from __future__ import annotations
@@ -25,7 +32,10 @@ import argparse
 import json
 import math
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from sim_backend.closed_loop import CrashLimits
 
 NAME = "simulate"
 HELP = "fly a mission in the in-process simulator and print tracking metrics"
@@ -48,6 +58,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="what the controller acts on: the true state plus the preset's "
                         "estimation noise (default), or the UKF fed with the simulated IMU and "
                         "MoCap (after a 1 s rest on the ground to initialise)")
+    parser.add_argument("--max-touchdown-speed", type=float, default=None, metavar="M_S",
+                        help="fastest safe vertical speed at ground contact (default 1.0 m/s); "
+                        "faster is a crash")
+    parser.add_argument("--workspace", type=float, nargs=6, default=None,
+                        metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
+                        help="workspace box in m, world frame (default: the session default "
+                        "geofence); leaving it is a crash")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--log", default=None, metavar="FILE", help="write the flight record")
 
@@ -55,6 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def simulate(args: argparse.Namespace) -> dict[str, Any]:
     """Run the flight described by ``args``; return the summary dictionary."""
     from controller.missions import Mission
+    from groundstation.cli import UserError
     from groundstation.configs import load_disturbances, load_mission, load_vehicle
     from groundstation.metrics import flight_metrics
     from groundstation.record import RecordWriter
@@ -64,8 +82,8 @@ def simulate(args: argparse.Namespace) -> dict[str, Any]:
     mission = Mission(load_mission(args.mission))
     preset = load_disturbances(args.preset)
     if args.duration is not None and args.duration <= 0.0:
-        from groundstation.cli import UserError
         raise UserError(f"--duration must be positive, got {args.duration}")
+    limits = _crash_limits(args)
     tilt = None if args.tilt_deg is None else math.radians(args.tilt_deg)
     source: StateSource | None = None
     preroll_s = 0.0
@@ -77,7 +95,7 @@ def simulate(args: argparse.Namespace) -> dict[str, Any]:
     try:
         result = fly_mission(params, mission, preset, seed=args.seed, sink=writer,
                              duration_s=args.duration, tilt_override_rad=tilt,
-                             state_source=source, preroll_s=preroll_s)
+                             state_source=source, preroll_s=preroll_s, crash_limits=limits)
     finally:
         record = writer.close()
     out: dict[str, Any] = {
@@ -86,10 +104,36 @@ def simulate(args: argparse.Namespace) -> dict[str, Any]:
         "wall_time_s": result.wall_time_s, "sim_s_per_wall_s": result.realtime_factor,
         "touchdowns": len(result.touchdown_speeds_m_s),
         "max_touchdown_speed_m_s": max(result.touchdown_speeds_m_s, default=0.0),
+        "verdict": "ok" if result.crash is None else "crash",
+        "crash_reason": None if result.crash is None else result.crash.reason,
+        "crash_kind": None if result.crash is None else result.crash.kind,
+        "crash_t_s": None if result.crash is None else result.crash.t_s,
     }
     out.update(flight_metrics(record.rows, min_spin_hz=params.rotors.min_spin_hz,
                               max_spin_hz=params.rotors.max_spin_hz))
     return out
+
+
+def _crash_limits(args: argparse.Namespace) -> CrashLimits:
+    from groundstation.cli import UserError
+    from groundstation.session_config import SafetyConfig
+    from sim_backend.closed_loop import SAFE_TOUCHDOWN_SPEED_M_S, CrashLimits
+
+    speed = (SAFE_TOUCHDOWN_SPEED_M_S if args.max_touchdown_speed is None
+             else args.max_touchdown_speed)
+    if not (math.isfinite(speed) and speed > 0.0):
+        raise UserError(f"--max-touchdown-speed must be a positive speed in m/s, got {speed}")
+    if args.workspace is None:
+        safety = SafetyConfig()
+        lo, hi = safety.geofence_min_m, safety.geofence_max_m
+    else:
+        w = [float(v) for v in args.workspace]
+        lo, hi = (w[0], w[1], w[2]), (w[3], w[4], w[5])
+        if not all(math.isfinite(a) and math.isfinite(b) and a < b
+                   for a, b in zip(lo, hi, strict=True)):
+            raise UserError("--workspace needs XMIN YMIN ZMIN XMAX YMAX ZMAX with each minimum "
+                             f"below its maximum, got {' '.join(f'{v:g}' for v in args.workspace)}")
+    return CrashLimits(max_touchdown_speed_m_s=speed, workspace_min_w_m=lo, workspace_max_w_m=hi)
 
 
 _ROWS = (
@@ -121,6 +165,8 @@ def format_table(summary: dict[str, Any]) -> str:
         lines.append(f"{label:28s}" + "".join(f"{c:>12s}" for c in cells))
     lines.append(f"touchdowns: {summary['touchdowns']} (fastest "
                  f"{summary['max_touchdown_speed_m_s']:.2f} m/s)")
+    lines.append("verdict: " + ("ok" if summary["verdict"] == "ok"
+                                else f"CRASH: {summary['crash_reason']}"))
     lines.append(f"simulated {summary['sim_time_s']:.1f} s in {summary['wall_time_s']:.1f} s "
                  f"wall: {summary['sim_s_per_wall_s']:.1f}x real time")
     return "\n".join(lines)
@@ -136,4 +182,7 @@ def run(args: argparse.Namespace) -> int:
         print(format_table(summary))
         if args.log:
             print(f"flight record: {args.log}")
+    if summary["verdict"] != "ok":
+        print(f"fasthex: simulate: CRASH: {summary['crash_reason']}", file=sys.stderr)
+        return 1
     return 0

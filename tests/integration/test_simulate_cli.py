@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -84,3 +85,89 @@ def test_that_the_ukf_can_fly_the_takeoff_on_the_simulated_sensors(
     est_err = np.linalg.norm(last["est_pos_w_m"] - last["pos_w_m"], axis=1)
     assert err.max() < 0.03
     assert est_err.max() < 0.005
+
+
+# ------------------------------------------------------------------------------ crash verdicts
+
+_NO_LAND = """schema: fasthex.mission
+version: 1
+name: no-land
+description: take off and hover; the mission ends in the air (no land segment)
+start_pos_w_m: [0.0, 0.0, 0.1]
+segments:
+  - kind: takeoff
+    duration_s: 3.0
+    height_m: 1.0
+    alpha: {kind: constant, value_deg: 0.0}
+  - kind: hold
+    duration_s: 2.0
+"""
+
+
+def test_that_a_drop_from_hover_is_a_crash_with_the_free_fall_impact_speed(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Fixture: the motors stop at the mission's end, 1 m up, and the vehicle falls 0.9 m
+    mission = tmp_path / "no-land.yaml"
+    mission.write_text(_NO_LAND)
+    # Test
+    code = main(["simulate", str(mission), "--preset", "ideal", "--json"])
+    captured = capsys.readouterr()
+    out = json.loads(captured.out)
+    # Assert: v = sqrt(2 g h) for h = 0.9 m is 4.20 m/s (the spin-down, tau 30 ms, takes ~1 %)
+    assert code == 1
+    assert out["verdict"] == "crash" and out["crash_kind"] == "impact"
+    v = out["max_touchdown_speed_m_s"]
+    assert v == pytest.approx(math.sqrt(2 * 9.81 * 0.9), rel=0.03)
+    assert f"{v:.2f} m/s" in out["crash_reason"]
+    assert out["crash_t_s"] == pytest.approx(5.0 + math.sqrt(2 * 0.9 / 9.81), abs=0.03)
+    assert out["sim_time_s"] < 5.5  # the flight ended at the crash
+    assert captured.err.count("\n") == 1 and "CRASH: impact at" in captured.err
+
+
+def test_that_leaving_the_workspace_is_a_crash(capsys: pytest.CaptureFixture[str]) -> None:
+    # Test: Exp. 1 takes off to z = 1 m; a workspace topped at 0.8 m is left on the way up
+    code = main(["simulate", "--preset", "ideal", "--duration", "6", "--workspace",
+                 "-3", "-3", "-0.5", "3", "3", "0.8"])
+    captured = capsys.readouterr()
+    # Assert
+    assert code == 1
+    assert "verdict: CRASH: left the workspace" in captured.out
+    assert "z outside [-0.5, 0.8] m" in captured.err
+
+
+def test_that_a_nominal_flight_has_the_verdict_ok(capsys: pytest.CaptureFixture[str]) -> None:
+    # Test: takeoff and settling of Exp. 1 inside the default geofence
+    code = main(["simulate", "--preset", "ideal", "--duration", "6", "--json"])
+    out = json.loads(capsys.readouterr().out)
+    # Assert
+    assert code == 0
+    assert out["verdict"] == "ok" and out["crash_reason"] is None
+
+
+def test_that_crash_options_are_checked(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["simulate", "--max-touchdown-speed", "0"]) == 2
+    assert "--max-touchdown-speed" in capsys.readouterr().err
+    assert main(["simulate", "--workspace", "1", "0", "0", "0", "1", "1"]) == 2
+    assert "--workspace" in capsys.readouterr().err
+
+
+def test_that_a_non_finite_state_or_estimate_is_a_crash() -> None:
+    # Fixture
+    from controller.reference import VehicleState
+    from sim_backend.closed_loop import CrashLimits, check_crash
+
+    ok = VehicleState((0.0, 0.0, 1.0), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    nan = VehicleState((0.0, 0.0, 1.0), (math.nan, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0),
+                       (0.0, 0.0, 0.0))
+    inf = VehicleState((0.0, 0.0, 1.0), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0),
+                       (0.0, math.inf, 0.0))
+    limits = CrashLimits()
+    # Test / Assert
+    assert check_crash(1.0, limits, ok, ok, None) is None
+    assert check_crash(1.0, limits, ok, ok, 0.99) is None
+    crash = check_crash(1.0, limits, nan, ok, None)
+    assert crash is not None and crash.kind == "non-finite" and "vehicle state" in crash.reason
+    crash = check_crash(1.0, limits, ok, inf, None)
+    assert crash is not None and crash.kind == "non-finite" and "estimate" in crash.reason
+    crash = check_crash(1.0, limits, ok, ok, 1.01)
+    assert crash is not None and crash.kind == "impact"
