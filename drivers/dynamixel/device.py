@@ -468,6 +468,44 @@ def probe_servo(uri: str, latency_timer_ms: float = 16.0,
         link.drop()
 
 
+@dataclass(frozen=True, slots=True)
+class ServoReading:
+    """What :func:`read_servo` measured: the identity and the RAM state, as raw as it came."""
+
+    identity: ServoIdentity
+    goal_position_steps: int
+    present_position_steps: int
+    speed_servo_rad_s: float
+    load_fraction: float
+    voltage_v: float
+    temperature_c: float
+    moving: bool
+    torque_enabled: bool
+    led_on: bool
+    """The driver leaves the LED on once it has configured the servo since its power-up."""
+
+
+def read_servo(uri: str, latency_timer_ms: float = 16.0,
+               read_block_ms: float = 1.0) -> ServoReading:
+    """Identify the servo at ``uri`` and read its state with PING and READ only: nothing is
+    written, EEPROM or RAM (``fasthex servo status``). Raises :class:`ServoCommError`."""
+    link = _Link(uri, latency_timer_ms, read_block_ms)
+    link.open()
+    try:
+        ident = _identify(link)
+        torque, _ = link.read(Reg.TORQUE_ENABLE, 2)  # Torque Enable (24), LED (25)
+        goal = to_signed16(_u16(link.read(Reg.GOAL_POSITION, 2)[0], 0))
+        data, _ = link.read(Reg.PRESENT_POSITION, STATE_BLOCK_LENGTH)
+    finally:
+        link.drop()
+    return ServoReading(
+        identity=ident, goal_position_steps=goal, present_position_steps=to_signed16(
+            _u16(data, 0)), speed_servo_rad_s=speed_rad_s(signed_magnitude_11(_u16(data, 2))),
+        load_fraction=0.001 * signed_magnitude_11(_u16(data, 4)), voltage_v=0.1 * data[6],
+        temperature_c=float(data[7]), moving=bool(data[10]), torque_enabled=bool(torque[0]),
+        led_on=bool(torque[1]))
+
+
 def _identify(link: _Link) -> ServoIdentity:
     model, _ = link.ping()
     firmware = link.read(Reg.FIRMWARE_VERSION, 1)[0][0]

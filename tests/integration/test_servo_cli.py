@@ -2,17 +2,26 @@
 
 from __future__ import annotations
 
+import math
+import threading
+from pathlib import Path
+
 import pytest
 
+from drivers.dynamixel import Reg
+from drivers.dynamixel.control_table import MX28_P1, Access
 from groundstation.cli import main
+from sim_backend.emulators.dynamixel_p1 import EmulatedMX28
+from sim_backend.vehicle import BenchVehicle
 
 
 def test_that_servo_status_identifies_the_emulated_mx28(capsys: pytest.CaptureFixture[str]
                                                         ) -> None:
     assert main(["servo", "status"]) == 0
     out = capsys.readouterr().out
-    assert "model 29 firmware 41 id 1 mode multi_turn" in out
-    assert "tilt 0.00 deg" in out and "health OK" in out
+    # a fresh emulated servo, read as it is: joint mode until a flight or a move configures it
+    assert "model 29 firmware 41 id 1 mode joint" in out
+    assert "tilt 0.00 deg" in out and "torque off" in out
 
 
 def test_that_servo_move_reaches_the_goal_tilt(capsys: pytest.CaptureFixture[str]) -> None:
@@ -26,3 +35,67 @@ def test_that_servo_move_without_a_goal_is_a_user_error(capsys: pytest.CaptureFi
                                                         ) -> None:
     assert main(["servo", "move"]) == 2
     assert "needs the goal tilt in degrees" in capsys.readouterr().err
+
+
+# ------------------------------------------------------- read-only status, range, torque at rest
+
+def _mx28(tmp_path: Path) -> EmulatedMX28:
+    vehicle = BenchVehicle(max_tilt_rate_rad_s=math.radians(100.0))
+    return EmulatedMX28(vehicle, lock=threading.Lock(), link_path=tmp_path / "tilt-servo",
+                        drive_clock=True, zero_offset_steps=1024)
+
+
+def _control_table(emu: EmulatedMX28) -> dict[str, int]:
+    """Every writable entry, EEPROM and RAM (the read-only ones are measurements that move by
+    themselves: Present *, Realtime Tick)."""
+    return {r.reg.name: emu.register(r.reg) for r in MX28_P1 if r.access is Access.RW}
+
+
+def test_that_servo_status_writes_nothing_to_the_servo(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Fixture: a factory-fresh servo (joint mode, 500 us return delay, torque off)
+    with _mx28(tmp_path) as emu:
+        before = _control_table(emu)
+        instructions = emu.instructions
+        # Test
+        code = main(["servo", "status", "--uri", f"serial://{emu.path}?baud=1000000&id=1",
+                     "--zero-steps", "1024"])
+        after = _control_table(emu)
+        # Assert: it asked (PING and READs) but every writable register is as it was
+        assert code == 0
+        assert len(before) == 25
+        assert emu.instructions - instructions >= 5
+        assert after == before
+    out = capsys.readouterr().out
+    assert "model 29 firmware 41 id 1 mode joint" in out  # reported, not "fixed"
+    assert "torque off" in out and "not configured since power-up" in out
+
+
+def test_that_a_move_outside_the_tilt_range_is_an_error(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    for deg in ("80", "-1", "nan"):
+        # Test: refused before anything is opened or started
+        code = main(["servo", "move", deg])
+        err = capsys.readouterr().err
+        # Assert: one line naming the range of the session's vehicle (fasthex: 0..35 deg)
+        assert code == 2
+        assert err.count("\n") == 1
+        assert "within [0, 35] deg" in err
+
+
+def test_that_move_and_home_leave_the_torque_off(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Fixture
+    with _mx28(tmp_path) as emu:
+        uri = f"serial://{emu.path}?baud=1000000&id=1"
+        # Test
+        moved = main(["servo", "move", "2", "--uri", uri, "--zero-steps", "1024"])
+        torque_after_move = emu.register(Reg.TORQUE_ENABLE)
+        tilt_steps = emu.register(Reg.PRESENT_POSITION)
+        homed = main(["servo", "home", "--uri", uri, "--zero-steps", "1024"])
+        torque_after_home = emu.register(Reg.TORQUE_ENABLE)
+    # Assert: 2 deg of tilt = 40 deg at the servo (20:1) = 455 steps above the zero
+    assert moved == 0 and homed == 0
+    assert torque_after_move == 0 and torque_after_home == 0
+    assert tilt_steps - 1024 == pytest.approx(2 / 0.05 * 4096 / 360, abs=3)
+    assert capsys.readouterr().out.count("torque off (the worm drive holds the tilt)") == 2
