@@ -2,19 +2,19 @@
 settings a lab would use for a 500 Hz Python loop.
 
 :class:`LoopTimer` stores every tick's numbers in preallocated arrays (no allocation in the tick)
-and summarises them at the end. :func:`apply_realtime_settings` tries CPU affinity, SCHED_FIFO
-and a frozen/disabled garbage collector, and reports which took effect (unprivileged users and
-containers often refuse SCHED_FIFO).
+and summarises them at the end. :func:`apply_realtime_settings` (from
+:mod:`drivers.realtime`) tries CPU affinity, SCHED_FIFO for every thread, locked memory and a
+frozen garbage collector, and reports which took effect (unprivileged users and containers often
+refuse SCHED_FIFO).
 """
 
 from __future__ import annotations
 
-import contextlib
-import gc
-import os
 from dataclasses import dataclass
 
 import numpy as np
+
+from drivers.realtime import apply_realtime_settings, restore_default_settings
 
 
 @dataclass(frozen=True)
@@ -90,43 +90,6 @@ class LoopTimer:
         )
 
 
-def apply_realtime_settings(*, cpu: int | None = None, fifo_priority: int = 50,
-                            freeze_gc: bool = True) -> dict[str, str]:
-    """Try the scheduler settings of a real-time loop; returns ``{setting: outcome}``.
-
-    Nothing here raises: a refused setting is reported, and the flight goes on without it.
-    """
-    report: dict[str, str] = {}
-    if hasattr(os, "sched_setaffinity"):
-        try:
-            cpus = sorted(os.sched_getaffinity(0))
-            target = cpu if cpu is not None else cpus[-1]
-            os.sched_setaffinity(0, {target})
-            report["affinity"] = f"pinned to CPU {target}"
-        except OSError as exc:
-            report["affinity"] = f"refused ({exc.strerror})"
-    else:
-        report["affinity"] = "not supported on this OS"
-    if hasattr(os, "sched_setscheduler") and fifo_priority > 0:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo_priority))
-            report["scheduler"] = f"SCHED_FIFO priority {fifo_priority}"
-        except OSError as exc:
-            report["scheduler"] = f"SCHED_FIFO refused ({exc.strerror}); SCHED_OTHER"
-    else:
-        report["scheduler"] = "SCHED_OTHER"
-    if freeze_gc:
-        gc.collect()
-        gc.freeze()
-        gc.disable()
-        report["gc"] = "collected, frozen and disabled for the flight"
-    return report
-
-
-def restore_default_settings() -> None:
-    """Undo :func:`apply_realtime_settings` (GC back on; scheduler back to SCHED_OTHER)."""
-    gc.enable()
-    gc.unfreeze()
-    if hasattr(os, "sched_setscheduler"):
-        with contextlib.suppress(OSError):
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+# The scheduler settings live with the device threads they serve (the emulated vehicle uses
+# them too); re-exported here for the loop's callers.
+__all__ = ["LoopTimer", "TimingSummary", "apply_realtime_settings", "restore_default_settings"]

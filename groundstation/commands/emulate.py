@@ -9,11 +9,10 @@ Dynamixel Wizard, a serial terminal.
 from __future__ import annotations
 
 import argparse
-import signal
+import contextlib
+import sys
 import tempfile
-import threading
 from pathlib import Path
-from typing import Any
 
 NAME = "emulate"
 HELP = "run the emulated FAST-Hex and print its device addresses (until Ctrl-C)"
@@ -37,6 +36,7 @@ def run(args: argparse.Namespace) -> int:
     from groundstation.configs import load_mission
     from groundstation.session import EmulatorProcess, SessionError, device_uris
     from groundstation.session_config import EmulatedBackend, load_session, resolve_reference
+    from groundstation.signals import StopSignals
 
     path = find_config("sessions", args.session)
     cfg = load_session(path)
@@ -51,12 +51,8 @@ def run(args: argparse.Namespace) -> int:
         emulator = EmulatorProcess(backend, cfg.vehicle, mission.start_pos_w_m, link_dir)
     except SessionError as exc:
         raise UserError(str(exc)) from None
-    stop = threading.Event()
-
-    def on_signal(signum: int, frame: Any) -> None:
-        stop.set()
-
-    previous = signal.signal(signal.SIGINT, on_signal)
+    # SIGINT, SIGTERM, SIGHUP: stop the emulator in order (the handler only counts)
+    signals = StopSignals().install()
     try:
         uris = device_uris(replace(cfg, backend=backend), emulator)
         print(f"flight-ctrl  pty  {emulator.devices['flight-ctrl']}  (tk3, {backend.clock})")
@@ -65,10 +61,25 @@ def run(args: argparse.Namespace) -> int:
         print(f"mocap        udp  {emulator.devices['mocap']}  (NatNet 4.1 command port; "
               f"{uris.mocap})", flush=True)
         print("running; Ctrl-C to stop", flush=True)
-        while not stop.wait(0.5):
+        was_stopped = False
+        while not signals.wait(0.5):
             if emulator.proc.poll() is not None:
                 raise UserError(f"the emulated vehicle exited (code {emulator.proc.returncode})")
+            stopped = _is_stopped(emulator.proc.pid)
+            if stopped != was_stopped:
+                print("the emulated vehicle is stopped (SIGSTOP): its devices do not answer "
+                      "until it is continued (SIGCONT)" if stopped else
+                      "the emulated vehicle runs again", file=sys.stderr, flush=True)
+                was_stopped = stopped
     finally:
-        signal.signal(signal.SIGINT, previous)
+        signals.restore()
         emulator.close()
     return 0
+
+
+def _is_stopped(pid: int) -> bool:
+    """Linux: the process is stopped by a signal (state ``T`` in ``/proc/PID/stat``)."""
+    with contextlib.suppress(OSError, IndexError):
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        return stat.rsplit(")", 1)[1].split()[0] in ("T", "t")
+    return False

@@ -1,0 +1,113 @@
+"""One policy for every way an operator (or the system) asks a session to stop.
+
+SIGINT (Ctrl-C: the terminal sends it to the whole foreground process group), SIGTERM
+(``timeout``, systemd, ``kill``) and SIGHUP (the terminal closed) all mean the same thing: the
+first one lands the vehicle, a second one cuts the motors. SIGKILL cannot be caught: then the
+Flight-Ctrl's own watchdog stops the motors.
+
+The handlers do the least a signal handler may: they count, remember the signal number and
+append to a deque (an atomic operation that takes no lock), and the C-level wake-up byte of
+:func:`signal.set_wakeup_fd` lets a thread blocked in :meth:`StopSignals.wait` see the signal at
+once. They never take a lock: a handler runs on the main thread between two bytecodes, possibly
+while that thread holds the very lock (``threading.Event.set`` would deadlock there).
+
+The children of a session are arranged so that these signals reach only the ground station's
+own process: the emulated vehicle runs in a session of its own, and the telemetry and servo
+processes ignore them (the ground station stops them in order after the flight).
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import os
+import select
+import signal
+from types import FrameType
+from typing import Any
+
+#: the signals that ask a session to stop (land first, then cut)
+STOP_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+def ignore_stop_signals() -> None:
+    """For a session's child processes: the ground station ends them, not the terminal."""
+    for sig in STOP_SIGNALS:
+        with contextlib.suppress(OSError, ValueError):
+            signal.signal(sig, signal.SIG_IGN)
+
+
+class StopSignals:
+    """Installs the stop handlers on the main thread; a context manager restores the old ones.
+
+    ``requests`` is the deque the flight loop takes operator requests from: each signal
+    appends ``"stop"`` (the state machine lands on the first and cuts on the second)."""
+
+    def __init__(self, requests: collections.deque[Any] | None = None) -> None:
+        self.requests: collections.deque[Any] = (requests if requests is not None
+                                                 else collections.deque())
+        self.count = 0
+        #: the signal numbers received, in order (a fixed-size ring would do; a list of a
+        #: few ints is all a session ever sees)
+        self.received: list[int] = []
+        self.hangup = False  # SIGHUP: the terminal is gone, stop writing to it
+        self._previous: dict[int, Any] = {}
+        self._rfd = self._wfd = -1
+        self._previous_wakeup = -1
+
+    # -- handlers ------------------------------------------------------------------------
+    def _handler(self, signum: int, frame: FrameType | None) -> None:
+        self.count += 1
+        self.received.append(signum)
+        if signum == signal.SIGHUP:
+            self.hangup = True
+        self.requests.append("stop")
+
+    def install(self) -> StopSignals:
+        self._rfd, self._wfd = os.pipe()
+        os.set_blocking(self._rfd, False)
+        os.set_blocking(self._wfd, False)
+        self._previous_wakeup = signal.set_wakeup_fd(self._wfd, warn_on_full_buffer=False)
+        for sig in STOP_SIGNALS:
+            self._previous[sig] = signal.signal(sig, self._handler)
+        return self
+
+    def restore(self) -> None:
+        for sig, handler in self._previous.items():
+            with contextlib.suppress(OSError, ValueError, TypeError):
+                signal.signal(sig, handler)
+        self._previous.clear()
+        if self._wfd >= 0:
+            with contextlib.suppress(ValueError):
+                signal.set_wakeup_fd(self._previous_wakeup)
+            for fd in (self._rfd, self._wfd):
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+            self._rfd = self._wfd = -1
+
+    def __enter__(self) -> StopSignals:
+        return self.install()
+
+    def __exit__(self, *exc: object) -> None:
+        self.restore()
+
+    # -- queries -------------------------------------------------------------------------
+    def wait(self, timeout_s: float) -> bool:
+        """Block up to ``timeout_s`` or until a signal arrives; True if any was received."""
+        if self.count:
+            return True
+        if self._rfd >= 0:
+            with contextlib.suppress(InterruptedError, OSError):
+                ready, _, _ = select.select([self._rfd], [], [], timeout_s)
+                if ready:
+                    with contextlib.suppress(BlockingIOError, OSError):
+                        os.read(self._rfd, 512)
+        return self.count > 0
+
+    @property
+    def names(self) -> list[str]:
+        return [signal.Signals(s).name for s in self.received]
+
+    def describe(self) -> str:
+        """``"SIGTERM"``, ``"SIGINT, SIGINT"``: what was received, for the end reason."""
+        return ", ".join(self.names)
