@@ -16,6 +16,13 @@ union of dataclasses told apart by a ``Literal`` field they share (e.g. ``kind: 
 
 YAML 1.1 trap: PyYAML reads ``4e-6`` (no dot) as a *string*. A plain (unquoted) scalar that
 Python's ``float()`` accepts is taken as a number for float fields; a quoted one is not.
+
+Before the YAML parser sees a file, the reader refuses what no config file needs and what could
+make the parser itself fail or blow up, each as ``FILE:LINE: expectation`` (no key): files over
+:data:`MAX_FILE_BYTES`, text that is not UTF-8, control characters (NUL, escape, ...), tabs in the
+indentation, more than one YAML document, nesting deeper than :data:`MAX_NESTING`, more than
+:data:`MAX_NODES` values, and anchors/aliases (``&a`` / ``*a``: a few lines of them expand to
+billions of values). Text values may not carry control characters either (``"\\0"``).
 """
 
 from __future__ import annotations
@@ -23,6 +30,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
+import re
 import types
 import typing
 from pathlib import Path
@@ -35,10 +43,19 @@ T = TypeVar("T")
 __all__ = [
     "ConfigError",
     "ConfigValueError",
+    "line_of",
     "load_config",
     "load_config_text",
     "spec",
 ]
+
+#: largest config file read (bytes): the shipped ones are ~2 kB; this bounds parse time/memory
+MAX_FILE_BYTES = 256 * 1024
+#: deepest nesting of mappings/lists: the schemas need 4 (session > backend > faults > item);
+#: PyYAML's composer recurses per level, so an unbounded depth ends in RecursionError
+MAX_NESTING = 16
+#: most scalars + collections in one file (the shipped ones have < 300)
+MAX_NODES = 20000
 
 
 class ConfigError(Exception):
@@ -82,34 +99,116 @@ def spec(
     return dataclasses.field(default=default, metadata=meta)
 
 
-def load_config(path: str | Path, cls: type[T], *, schema: str, versions: tuple[int, ...] = (1,)
-                ) -> T:
-    """Read ``path`` and build ``cls`` from it; :class:`ConfigError` on any problem."""
+def load_config(path: str | Path, cls: type[T], *, schema: str, versions: tuple[int, ...] = (1,),
+                lines: dict[str, int] | None = None) -> T:
+    """Read ``path`` and build ``cls`` from it; :class:`ConfigError` on any problem.
+
+    ``lines``, when given, is filled with the line of every key path read (``segments[2].
+    pos_w_m``), so that checks across files can point at the line of a value.
+    """
     path = Path(path)
+    label = str(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        with path.open("rb") as f:
+            data = f.read(MAX_FILE_BYTES + 1)
     except OSError as exc:
-        raise ConfigError(str(path), None, None, f"cannot read: {exc.strerror}") from None
-    except UnicodeDecodeError:
-        raise ConfigError(str(path), None, None, "not a UTF-8 text file") from None
-    return load_config_text(text, cls, schema=schema, versions=versions, file_label=str(path))
+        raise ConfigError(label, None, None, f"cannot read: {exc.strerror}") from None
+    if len(data) > MAX_FILE_BYTES:
+        raise ConfigError(label, 1, None, f"file too large; expected at most "
+                          f"{MAX_FILE_BYTES // 1024} KiB of YAML")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data[:exc.start].count(b"\n") + 1
+        raise ConfigError(label, line, None, f"invalid UTF-8 (byte 0x{data[exc.start]:02x}); "
+                          "expected a UTF-8 text file") from None
+    return load_config_text(text, cls, schema=schema, versions=versions, file_label=label,
+                            lines=lines)
 
 
 def load_config_text(text: str, cls: type[T], *, schema: str, versions: tuple[int, ...] = (1,),
-                     file_label: str = "<string>") -> T:
+                     file_label: str = "<string>", lines: dict[str, int] | None = None) -> T:
     """Like :func:`load_config` for text already in memory (``file_label`` names it)."""
+    try:
+        return _load_text(text, cls, schema, versions, file_label, lines)
+    except RecursionError:  # the limits below should make this unreachable; never a traceback
+        raise ConfigError(file_label, 1, None, "nested too deeply; expected at most "
+                          f"{MAX_NESTING} levels") from None
+
+
+def _yaml_error(file_label: str, exc: yaml.YAMLError) -> ConfigError:
+    if isinstance(exc, yaml.MarkedYAMLError):
+        mark = exc.problem_mark or exc.context_mark
+        problem = exc.problem or exc.context or "syntax error"
+        return ConfigError(file_label, mark.line + 1 if mark is not None else 1, None,
+                           f"not valid YAML: {problem}")
+    return ConfigError(file_label, 1, None, f"not valid YAML: {exc}")
+
+
+def _check_text(text: str, file_label: str) -> None:
+    """Reader-level refusals before the parser runs (see the module docstring)."""
+    if len(text) > MAX_FILE_BYTES:
+        raise ConfigError(file_label, 1, None, f"file too large; expected at most "
+                          f"{MAX_FILE_BYTES // 1024} KiB of YAML")
+    for number, line in enumerate(text.split("\n"), 1):
+        bad = _CONTROL.search(line)
+        if bad is not None:
+            raise ConfigError(file_label, number, None,
+                              f"control character U+{ord(bad.group()):04X}; expected plain text")
+        indent = line[:len(line) - len(line.lstrip(" \t"))]
+        if "\t" in indent:
+            raise ConfigError(file_label, number, None,
+                              "tab in the indentation; YAML indents with spaces")
+
+
+def _check_events(text: str, file_label: str) -> None:
+    """Walk the parser's events (no recursion): documents, depth, size, aliases."""
+    depth = documents = nodes = 0
+    loader = yaml.SafeLoader(text)
+    try:
+        while loader.check_event():
+            event = loader.get_event()
+            line = event.start_mark.line + 1 if event.start_mark is not None else 1
+            if isinstance(event, yaml.DocumentStartEvent):
+                documents += 1
+                if documents > 1:
+                    raise ConfigError(file_label, line, None, "a second YAML document ('---'); "
+                                      "expected one document per file")
+            elif isinstance(event, yaml.AliasEvent) or (
+                    isinstance(event, yaml.NodeEvent) and event.anchor is not None):
+                raise ConfigError(file_label, line, None, "anchors and aliases (&name, *name) "
+                                  "are not supported; expected plain values")
+            elif isinstance(event, yaml.CollectionStartEvent):
+                depth += 1
+                if depth > MAX_NESTING:
+                    raise ConfigError(file_label, line, None, "nested too deeply; expected at "
+                                      f"most {MAX_NESTING} levels")
+            elif isinstance(event, yaml.CollectionEndEvent):
+                depth -= 1
+            if isinstance(event, yaml.NodeEvent):
+                nodes += 1
+                if nodes > MAX_NODES:
+                    raise ConfigError(file_label, line, None,
+                                      f"too many values; expected at most {MAX_NODES}")
+    except yaml.YAMLError as exc:
+        raise _yaml_error(file_label, exc) from None
+    finally:
+        loader.dispose()
+
+
+def _load_text(text: str, cls: type[T], schema: str, versions: tuple[int, ...],
+               file_label: str, lines: dict[str, int] | None) -> T:
+    text = text.removeprefix("\ufeff")  # a UTF-8 byte-order mark is harmless
+    _check_text(text, file_label)
+    _check_events(text, file_label)
     loader = yaml.SafeLoader(text)
     try:
         root = loader.get_single_node()
-    except yaml.MarkedYAMLError as exc:
-        mark = exc.problem_mark or exc.context_mark
-        line = mark.line + 1 if mark is not None else None
-        raise ConfigError(file_label, line, None, f"not valid YAML: {exc.problem}") from None
     except yaml.YAMLError as exc:
-        raise ConfigError(file_label, None, None, f"not valid YAML: {exc}") from None
+        raise _yaml_error(file_label, exc) from None
     finally:
         loader.dispose()
-    walker = _Walker(file_label, loader)
+    walker = _Walker(file_label, loader, lines)
     if root is None:
         raise ConfigError(file_label, 1, None, "empty file; expected a mapping with "
                           f"'schema: {schema}' and 'version'")
@@ -135,30 +234,48 @@ def load_config_text(text: str, cls: type[T], *, schema: str, versions: tuple[in
 
 Entries = dict[str, tuple[yaml.Node, yaml.Node]]
 
+#: C0 controls but tab and CR, DEL, C1 controls, and the non-characters a text file never holds
+_CONTROL = re.compile("[\x00-\x08\x0b-\x0c\x0e-\x1f\x7f-\x9f\ufffe\uffff]")
+
 
 class _Walker:
-    def __init__(self, file_label: str, loader: yaml.SafeLoader) -> None:
+    def __init__(self, file_label: str, loader: yaml.SafeLoader,
+                 lines: dict[str, int] | None = None) -> None:
         self.file = file_label
         self.loader = loader
+        self.lines: dict[str, int] = {} if lines is None else lines
 
     # -- errors and primitives -------------------------------------------------------------
     def error(self, node: yaml.Node, key: str, message: str) -> ConfigError:
         return ConfigError(self.file, node.start_mark.line + 1, key or None, message)
 
+    def construct(self, node: yaml.Node, key: str) -> Any:
+        """PyYAML's value for a node; its own errors (unknown tags, ``2020-13-45`` read as a
+        date, ``!!int abc``) become located config errors."""
+        try:
+            return self.loader.construct_object(node, deep=True)
+        except (yaml.YAMLError, ValueError, TypeError, OverflowError) as exc:
+            problem = getattr(exc, "problem", None) or str(exc)
+            raise self.error(node, key, f"cannot read this value ({problem})") from None
+
     def scalar(self, node: yaml.Node, key: str) -> Any:
         if not isinstance(node, yaml.ScalarNode):
             kind = "a mapping" if isinstance(node, yaml.MappingNode) else "a list"
             raise self.error(node, key, f"expected a single value, got {kind}")
-        return self.loader.construct_object(node, deep=True)
+        return self.construct(node, key)
 
     def mapping(self, node: yaml.Node, key: str) -> Entries:
         if not isinstance(node, yaml.MappingNode):
             raise self.error(node, key, "expected a mapping (key: value lines)")
         entries: Entries = {}
         for key_node, value_node in node.value:
-            name = self.loader.construct_object(key_node, deep=True)
+            if not isinstance(key_node, yaml.ScalarNode):
+                raise self.error(key_node, key, "keys must be names, got a "
+                                 + ("mapping" if isinstance(key_node, yaml.MappingNode)
+                                    else "list"))
+            name = self.construct(key_node, key)
             if not isinstance(name, str):
-                raise self.error(key_node, key, f"keys must be names, got {name!r}")
+                raise self.error(key_node, key, f"keys must be names, got {_short(name)}")
             if name in entries:
                 raise self.error(key_node, _join(key, name), "duplicate key")
             entries[name] = (key_node, value_node)
@@ -167,8 +284,10 @@ class _Walker:
     # -- typed conversion -----------------------------------------------------------------
     def convert(self, tp: Any, node: yaml.Node, key: str, meta: dict[str, Any]) -> Any:
         origin = get_origin(tp)
+        if key:
+            self.lines.setdefault(key, node.start_mark.line + 1)
         if tp is Any:
-            return self.loader.construct_object(node, deep=True)
+            return self.construct(node, key)
         if dataclasses.is_dataclass(tp) and isinstance(tp, type):
             return self.dataclass_from(tp, node, self.mapping(node, key), key)
         if origin in (typing.Union, types.UnionType):
@@ -209,6 +328,10 @@ class _Walker:
             value = self.scalar(node, key)
             if not isinstance(value, str):
                 raise self.error(node, key, f"expected a text value, got {value!r}")
+            bad = _CONTROL.search(value)
+            if bad is not None or "\n" in value.rstrip("\n"):
+                char = "a line break" if bad is None else f"U+{ord(bad.group()):04X}"
+                raise self.error(node, key, f"expected one line of plain text, got {char}")
             return value
         raise TypeError(f"unsupported config field type {tp!r} at {key}")
 
@@ -219,17 +342,23 @@ class _Walker:
             with contextlib.suppress(ValueError):
                 value = float(value)
         if isinstance(value, bool) or not isinstance(value, int | float):
-            raise self.error(node, key, f"expected a number{_range_text(meta)}, got {value!r}")
-        if not math.isfinite(value):
-            raise self.error(node, key, f"expected a finite number, got {value!r}")
+            raise self.error(node, key, f"expected a number{_range_text(meta)}, "
+                             f"got {_short(value)}")
+        try:
+            number = float(value)  # an integer beyond 1e308 overflows: not a sane number either
+        except OverflowError:
+            number = math.inf
+        if not math.isfinite(number):
+            raise self.error(node, key, f"expected a finite number, got {_short(value)}")
         self.check_range(node, key, value, meta)
-        return float(value)
+        return number
 
     def check_range(self, node: yaml.Node, key: str, value: float, meta: dict[str, Any]) -> None:
         ge, gt, le, lt = (meta.get(k) for k in ("ge", "gt", "le", "lt"))
         if ((ge is not None and value < ge) or (gt is not None and value <= gt)
                 or (le is not None and value > le) or (lt is not None and value >= lt)):
-            raise self.error(node, key, f"expected a number{_range_text(meta)}, got {value!r}")
+            raise self.error(node, key, f"expected a number{_range_text(meta)}, "
+                             f"got {_short(value)}")
 
     def sequence(self, tp: Any, node: yaml.Node, key: str, meta: dict[str, Any]) -> tuple[Any, ...]:
         args = get_args(tp)
@@ -250,7 +379,7 @@ class _Walker:
     def union(self, tp: Any, node: yaml.Node, key: str, meta: dict[str, Any]) -> Any:
         members = [a for a in get_args(tp) if a is not type(None)]
         if type(None) in get_args(tp) and isinstance(node, yaml.ScalarNode) and \
-                self.loader.construct_object(node) is None:
+                self.construct(node, key) is None:
             return None
         if len(members) == 1:
             return self.convert(members[0], node, key, meta)
@@ -288,13 +417,37 @@ class _Walker:
         try:
             return cls(**kwargs)
         except ConfigValueError as exc:
-            first = exc.key.split(".")[0].split("[")[0]
-            where = entries[first][1] if first in entries else node
-            raise self.error(where, _join(key, exc.key), exc.message) from None
+            full = _join(key, exc.key)
+            line = _line_of(self.lines, full)
+            if line is None:
+                first = exc.key.split(".")[0].split("[")[0]
+                line = (entries[first][1] if first in entries else node).start_mark.line + 1
+            raise ConfigError(self.file, line, full, exc.message) from None
 
 
 def _join(prefix: str, name: str) -> str:
     return f"{prefix}.{name}" if prefix else name
+
+
+def _line_of(lines: dict[str, int], key: str) -> int | None:
+    """Line of ``key`` or of its nearest enclosing key path that was read."""
+    while key:
+        if key in lines:
+            return lines[key]
+        cut = max(key.rfind("."), key.rfind("["))
+        key = key[:cut] if cut > 0 else ""
+    return None
+
+
+def line_of(lines: dict[str, int], key: str, default: int = 1) -> int:
+    """Public form of the lookup for checks across files (a line is always given)."""
+    found = _line_of(lines, key)
+    return default if found is None else found
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
 
 
 def _discriminator(members: list[Any]) -> str:

@@ -16,6 +16,12 @@ order, each starting where the previous one ended:
 Each segment may carry an ``alpha`` profile (times relative to the segment start):
 ``constant``, ``steps``, ``ramp`` or ``auto`` (:mod:`controller.tilt_planner`); without one a
 segment keeps the previous segment's final alpha (or stays ``auto``).
+
+Validation (before anything flies): positions lie in a sane workspace (:data:`WORKSPACE_M`),
+every takeoff climbs above where it starts, alpha steps and ramps happen inside their segment,
+and no segment asks for more than :data:`MAX_REF_SPEED_M_S` or :data:`MAX_REF_ACCEL_M_S2`. The
+checks that need the vehicle or the session (tilt range, geofence) use
+:func:`segment_extents_w_m` and :func:`explicit_alphas_deg`.
 """
 
 from __future__ import annotations
@@ -39,6 +45,23 @@ from controller.reference import (
 
 MISSION_SCHEMA = "fasthex.mission"
 
+#: |x|, |y|, |z| of any position (m): a lab or a field, not a planet (1e9 m is a typo)
+WORKSPACE_M = 100.0
+#: reference speed cap (m/s): the paper flies <= 1 m/s; beyond 10 m/s indoors is a typo
+MAX_REF_SPEED_M_S = 10.0
+#: reference acceleration cap (m/s^2): more than 1 g needs more than twice the hover thrust
+#: sideways or down, which no multirotor with a 20 % margin has
+MAX_REF_ACCEL_M_S2 = 9.81
+#: angular-rate cap of an attitude reference (deg/s)
+MAX_REF_RATE_DEG_S = 360.0
+#: a takeoff must climb at least this much above where it starts (m)
+MIN_TAKEOFF_CLIMB_M = 0.05
+#: longest segment or timing (s): one hour, longer than any battery
+MAX_SEGMENT_S = 3600.0
+#: shortest segment (s): five ticks of the 500 Hz loop
+MIN_SEGMENT_S = 0.01
+
+
 
 # -- alpha profiles ---------------------------------------------------------------------------
 @dataclass(frozen=True, kw_only=True)
@@ -50,7 +73,8 @@ class AlphaConstant:
 @dataclass(frozen=True, kw_only=True)
 class AlphaSteps:
     kind: Literal["steps"]
-    times_s: tuple[float, ...] = spec(ge=0.0, doc="step instants from the segment start")
+    times_s: tuple[float, ...] = spec(ge=0.0, le=MAX_SEGMENT_S,
+                                      doc="step instants from the segment start")
     values_deg: tuple[float, ...] = spec(ge=0.0, le=90.0, doc="value from each instant on")
 
     def __post_init__(self) -> None:
@@ -65,8 +89,8 @@ class AlphaRamp:
     kind: Literal["ramp"]
     from_deg: float = spec(ge=0.0, le=90.0)
     to_deg: float = spec(ge=0.0, le=90.0)
-    start_s: float = spec(0.0, ge=0.0, doc="ramp start from the segment start")
-    end_s: float = spec(gt=0.0, doc="ramp end from the segment start")
+    start_s: float = spec(0.0, ge=0.0, le=MAX_SEGMENT_S, doc="ramp start from the segment start")
+    end_s: float = spec(gt=0.0, le=MAX_SEGMENT_S, doc="ramp end from the segment start")
 
     def __post_init__(self) -> None:
         if self.end_s <= self.start_s:
@@ -76,7 +100,9 @@ class AlphaRamp:
 @dataclass(frozen=True, kw_only=True)
 class AlphaAuto:
     kind: Literal["auto"]
+    # 50 N is more than the weight of any vehicle the project flies
     margin_n: float = spec(0.5, ge=0.0, le=50.0, doc="lateral force margin over the demand")
+    # a minute of look-ahead is more than any segment needs; 0 = the demand now
     horizon_s: float = spec(4.0, ge=0.0, le=60.0, doc="look-ahead for the lateral demand")
 
 
@@ -87,9 +113,9 @@ AlphaProfile = AlphaConstant | AlphaSteps | AlphaRamp | AlphaAuto
 @dataclass(frozen=True, kw_only=True)
 class HoldSegment:
     kind: Literal["hold"]
-    duration_s: float = spec(gt=0.0, le=3600.0)
-    pos_w_m: tuple[float, float, float] | None = None
-    yaw_deg: float | None = None
+    duration_s: float = spec(ge=MIN_SEGMENT_S, le=MAX_SEGMENT_S)
+    pos_w_m: tuple[float, float, float] | None = spec(None, ge=-WORKSPACE_M, le=WORKSPACE_M)
+    yaw_deg: float | None = spec(None, ge=-360.0, le=360.0)
     measured: bool = True
     alpha: AlphaProfile | None = None
 
@@ -97,9 +123,9 @@ class HoldSegment:
 @dataclass(frozen=True, kw_only=True)
 class GoToSegment:
     kind: Literal["goto"]
-    duration_s: float = spec(gt=0.0, le=3600.0)
-    pos_w_m: tuple[float, float, float] = spec()
-    yaw_deg: float | None = None
+    duration_s: float = spec(ge=MIN_SEGMENT_S, le=MAX_SEGMENT_S)
+    pos_w_m: tuple[float, float, float] = spec(ge=-WORKSPACE_M, le=WORKSPACE_M)
+    yaw_deg: float | None = spec(None, ge=-360.0, le=360.0)
     measured: bool = True
     alpha: AlphaProfile | None = None
 
@@ -107,42 +133,57 @@ class GoToSegment:
 @dataclass(frozen=True, kw_only=True)
 class SineSegment:
     kind: Literal["sine"]
-    duration_s: float = spec(gt=0.0, le=3600.0)
+    duration_s: float = spec(ge=MIN_SEGMENT_S, le=MAX_SEGMENT_S)
     axis: Literal["x", "y", "z"]
     amplitude_m: float = spec(ge=0.0, le=10.0)
-    frequency_hz: float = spec(gt=0.0, le=10.0)
-    fade_in_s: float = spec(0.0, ge=0.0)
-    fade_out_s: float = spec(0.0, ge=0.0)
+    # 1 mHz (a 17-minute period) .. 10 Hz (beyond the position loop's bandwidth)
+    frequency_hz: float = spec(ge=1e-3, le=10.0)
+    fade_in_s: float = spec(0.0, ge=0.0, le=MAX_SEGMENT_S)
+    fade_out_s: float = spec(0.0, ge=0.0, le=MAX_SEGMENT_S)
     measured: bool = True
     alpha: AlphaProfile | None = None
 
     def __post_init__(self) -> None:
         if self.fade_in_s + self.fade_out_s > self.duration_s:
             raise ConfigValueError("fade_in_s", "fade_in_s + fade_out_s exceed duration_s")
+        w = 2.0 * math.pi * self.frequency_hz
+        if self.amplitude_m * w > MAX_REF_SPEED_M_S:
+            raise ConfigValueError("amplitude_m", f"peak speed A 2 pi f = "
+                                   f"{self.amplitude_m * w:.3g} m/s; expected <= "
+                                   f"{MAX_REF_SPEED_M_S:g} m/s")
+        if self.amplitude_m * w * w > MAX_REF_ACCEL_M_S2:
+            raise ConfigValueError("amplitude_m", f"peak acceleration A (2 pi f)^2 = "
+                                   f"{self.amplitude_m * w * w:.3g} m/s^2; expected <= "
+                                   f"{MAX_REF_ACCEL_M_S2:g} m/s^2")
 
 
 @dataclass(frozen=True, kw_only=True)
 class AttitudeSineSegment:
     kind: Literal["attitude_sine"]
-    duration_s: float = spec(gt=0.0, le=3600.0)
+    duration_s: float = spec(ge=MIN_SEGMENT_S, le=MAX_SEGMENT_S)
     axis: Literal["roll", "pitch", "yaw"]
     amplitude_deg: float = spec(ge=0.0, le=90.0)
-    frequency_hz: float = spec(gt=0.0, le=10.0)
-    fade_in_s: float = spec(0.0, ge=0.0)
-    fade_out_s: float = spec(0.0, ge=0.0)
+    frequency_hz: float = spec(ge=1e-3, le=10.0)
+    fade_in_s: float = spec(0.0, ge=0.0, le=MAX_SEGMENT_S)
+    fade_out_s: float = spec(0.0, ge=0.0, le=MAX_SEGMENT_S)
     measured: bool = True
     alpha: AlphaProfile | None = None
 
     def __post_init__(self) -> None:
         if self.fade_in_s + self.fade_out_s > self.duration_s:
             raise ConfigValueError("fade_in_s", "fade_in_s + fade_out_s exceed duration_s")
+        rate = self.amplitude_deg * 2.0 * math.pi * self.frequency_hz
+        if rate > MAX_REF_RATE_DEG_S:
+            raise ConfigValueError("amplitude_deg", f"peak angular rate A 2 pi f = {rate:.3g} "
+                                   f"deg/s; expected <= {MAX_REF_RATE_DEG_S:g} deg/s")
 
 
 @dataclass(frozen=True, kw_only=True)
 class TakeoffSegment:
     kind: Literal["takeoff"]
-    duration_s: float = spec(gt=0.0, le=600.0)
-    height_m: float = spec(gt=0.0, le=100.0, doc="target height of O_B above the world origin")
+    duration_s: float = spec(ge=MIN_SEGMENT_S, le=600.0)
+    height_m: float = spec(gt=-WORKSPACE_M, le=WORKSPACE_M,
+                           doc="target height of O_B above the world origin")
     measured: bool = False
     alpha: AlphaProfile | None = None
 
@@ -150,7 +191,7 @@ class TakeoffSegment:
 @dataclass(frozen=True, kw_only=True)
 class LandSegment:
     kind: Literal["land"]
-    duration_s: float = spec(gt=0.0, le=600.0)
+    duration_s: float = spec(ge=MIN_SEGMENT_S, le=600.0)
     sink_m: float = spec(0.05, ge=0.0, le=1.0, doc="aim this far below the start height")
     measured: bool = False
     alpha: AlphaProfile | None = None
@@ -166,13 +207,86 @@ class MissionSpec:
 
     name: str
     description: str = ""
-    start_pos_w_m: tuple[float, float, float] = spec(doc="O_B at rest on the ground")
+    start_pos_w_m: tuple[float, float, float] = spec(ge=-WORKSPACE_M, le=WORKSPACE_M,
+                                                     doc="O_B at rest on the ground")
     start_yaw_deg: float = spec(0.0, ge=-360.0, le=360.0)
     segments: tuple[Segment, ...] = spec()
 
     def __post_init__(self) -> None:
         if not self.segments:
             raise ConfigValueError("segments", "a mission needs at least one segment")
+        if len(self.segments) > 1000:
+            raise ConfigValueError("segments", "expected at most 1000 segments")
+        starts = [c.p0 for c in Mission(self)._segments]
+        for i, (seg, p0) in enumerate(zip(self.segments, starts, strict=True)):
+            key = f"segments[{i}]"
+            if isinstance(seg, TakeoffSegment) and seg.height_m < p0[2] + MIN_TAKEOFF_CLIMB_M:
+                raise ConfigValueError(
+                    f"{key}.height_m", f"must be above where the takeoff starts (z = "
+                    f"{p0[2]:g} m) by >= {MIN_TAKEOFF_CLIMB_M:g} m, got {seg.height_m:g}")
+            _check_alpha_timing(seg, key)
+            _check_min_jerk_move(seg, key, p0, self.start_pos_w_m[2])
+
+
+def _check_alpha_timing(seg: Segment, key: str) -> None:
+    prof = seg.alpha
+    if isinstance(prof, AlphaSteps) and prof.times_s[-1] >= seg.duration_s:
+        raise ConfigValueError(f"{key}.alpha.times_s", f"a step at {prof.times_s[-1]:g} s "
+                               f"never happens in a segment of {seg.duration_s:g} s")
+    if isinstance(prof, AlphaRamp) and prof.end_s > seg.duration_s:
+        raise ConfigValueError(f"{key}.alpha.end_s", f"the ramp ends after its segment "
+                               f"({seg.duration_s:g} s), got {prof.end_s:g}")
+
+
+def _check_min_jerk_move(seg: Segment, key: str, p0: Vec3, ground_z: float) -> None:
+    """Peak speed 1.875 d/T and acceleration 5.77 d/T^2 of a minimum-jerk move of length d."""
+    if isinstance(seg, GoToSegment):
+        target, field = seg.pos_w_m, "pos_w_m"
+    elif isinstance(seg, TakeoffSegment):
+        target, field = (p0[0], p0[1], seg.height_m), "height_m"
+    elif isinstance(seg, LandSegment):
+        target, field = (p0[0], p0[1], ground_z - seg.sink_m), "duration_s"
+    else:
+        return
+    d = math.dist(p0, target)
+    t = seg.duration_s
+    speed, accel = 1.875 * d / t, 5.7735 * d / (t * t)
+    if speed > MAX_REF_SPEED_M_S or accel > MAX_REF_ACCEL_M_S2:
+        raise ConfigValueError(
+            f"{key}.{field}", f"a {d:.3g} m move in {t:g} s peaks at {speed:.3g} m/s and "
+            f"{accel:.3g} m/s^2; expected <= {MAX_REF_SPEED_M_S:g} m/s and "
+            f"{MAX_REF_ACCEL_M_S2:g} m/s^2 (a longer duration_s)")
+
+
+def segment_extents_w_m(spec_: MissionSpec) -> list[tuple[Vec3, Vec3]]:
+    """Per segment, the corners (min, max) of the box its reference position stays in."""
+    out: list[tuple[Vec3, Vec3]] = []
+    for c in Mission(spec_)._segments:
+        pts = [c.p0, c.p1]
+        if isinstance(c.seg, SineSegment):
+            i = _AXES[c.seg.axis]
+            for sign in (-1.0, 1.0):
+                p = list(c.p0)
+                p[i] += sign * c.seg.amplitude_m
+                pts.append((p[0], p[1], p[2]))
+        lo = (min(p[0] for p in pts), min(p[1] for p in pts), min(p[2] for p in pts))
+        hi = (max(p[0] for p in pts), max(p[1] for p in pts), max(p[2] for p in pts))
+        out.append((lo, hi))
+    return out
+
+
+def explicit_alphas_deg(spec_: MissionSpec) -> list[tuple[str, float]]:
+    """Every alpha value a mission file writes down, with its key path (``auto`` has none)."""
+    out: list[tuple[str, float]] = []
+    for i, seg in enumerate(spec_.segments):
+        key, prof = f"segments[{i}].alpha", seg.alpha
+        if isinstance(prof, AlphaConstant):
+            out.append((f"{key}.value_deg", prof.value_deg))
+        elif isinstance(prof, AlphaSteps):
+            out += [(f"{key}.values_deg[{j}]", v) for j, v in enumerate(prof.values_deg)]
+        elif isinstance(prof, AlphaRamp):
+            out += [(f"{key}.from_deg", prof.from_deg), (f"{key}.to_deg", prof.to_deg)]
+    return out
 
 
 # -- runtime ----------------------------------------------------------------------------------

@@ -4,6 +4,15 @@ The YAML files under ``config/vehicles/`` map one to one onto :class:`VehiclePar
 ``groundstation.configs.load_vehicle``). Every field carries its unit in its name; ranges are
 declared with :func:`config.schema.spec` and cross-field consistency is checked in
 ``__post_init__``, so an inconsistent file is refused before anything is opened.
+
+The bounds are physical, not just "positive": each says why in a comment. The closed-loop checks
+treat each axis as the linearised loop the gains set: position ``m e'' + K_v e' + K_p e = 0``
+(natural frequency ``sqrt(K_p / m)``, damping ``K_v / (2 sqrt(K_p m))``) and attitude
+``J e'' + K_w e' + K_R e = 0`` (``sqrt(K_R / J)``, ``K_w / (2 sqrt(K_R J))``); with the integral
+term the cubic ``m s^3 + K_v s^2 + K_p s + K_i`` must stay Hurwitz (``K_v K_p > m K_i``).
+
+A fixed-tilt airframe is written with ``tilt.min_tilt_deg == tilt.max_tilt_deg`` and
+``max_rate_deg_s: 0``; a zero rate is refused for a tilt range (it would pin alpha for ever).
 """
 
 from __future__ import annotations
@@ -17,16 +26,44 @@ Vec3 = tuple[float, float, float]
 
 VEHICLE_SCHEMA = "fasthex.vehicle"
 
+#: air density at sea level, 15 degC (kg/m^3): turns c_f into the propeller's thrust coefficient
+AIR_DENSITY_KG_M3 = 1.225
+#: C_T = c_f / (rho D^4) (c_f per Hz^2) of real propellers lies in ~0.05..0.2; outside this
+#: window the thrust coefficient does not belong to a propeller of that diameter
+THRUST_COEFF_CT_RANGE = (0.02, 0.4)
+#: drag torque per thrust over the diameter (C_Q / C_T): ~0.06 for the shipped propellers
+DRAG_PER_DIAMETER_RANGE = (0.005, 0.3)
+#: the loops' damping ratio: below 0.2 a step overshoots by > 50 % and rings (near-zero
+#: damping = an oscillating vehicle); above 5 one pole is so slow the loop barely acts
+DAMPING_RANGE = (0.2, 5.0)
+#: the position loop's natural frequency (rad/s): below 0.5 it cannot hold against a 0.3 N
+#: gust within metres; above 30 it is faster than the 30 ms rotor lag can follow
+POS_BANDWIDTH_RAD_S = (0.5, 30.0)
+#: the attitude loop's natural frequency (rad/s): above 150 it is beyond a 500 Hz loop
+#: (w dt = 0.3) and any rotor lag
+ATT_BANDWIDTH_RAD_S = (1.0, 150.0)
+#: the MX-28's no-load speed at 12 V (55 rpm = 330 deg/s) drives the tilt through the worms
+SERVO_MAX_SPEED_DEG_S = 330.0
+
 
 @dataclass(frozen=True, kw_only=True)
 class GeometryParams:
     """Rotor layout: six rotors on a ring, 60 deg apart, rotor 1 on the body x axis."""
 
+    # 5 cm arms carry 1 inch props (the smallest multirotors); 2 m is beyond any lab vehicle
     arm_length_m: float = spec(ge=0.05, le=2.0, doc="distance O_B -> propeller centre, l")
     ring_diameter_m: float = spec(ge=0.05, le=4.0, doc="outer ring diameter, d")
     propeller_diameter_m: float = spec(ge=0.02, le=1.5, doc="propeller diameter")
 
     def __post_init__(self) -> None:
+        # neighbouring hubs are one arm length apart (60 deg on a ring of radius l); a little
+        # overlap is possible with tilted props, beyond 1.2 l the blades would strike
+        if self.propeller_diameter_m > 1.2 * self.arm_length_m:
+            raise ConfigValueError(
+                "propeller_diameter_m",
+                f"propellers of {self.propeller_diameter_m:g} m overlap on arms of "
+                f"{self.arm_length_m:g} m (expected <= {1.2 * self.arm_length_m:.3f} m)",
+            )
         if self.ring_diameter_m < 2.0 * self.arm_length_m * 0.9:
             raise ConfigValueError(
                 "ring_diameter_m",
@@ -39,10 +76,14 @@ class GeometryParams:
 class RotorParams:
     """Propeller and BL-Ctrl limits (paper Table I)."""
 
+    # 500 Hz = 30000 rpm, the fastest small brushless props; the BL-Ctrl speed field tops there
     min_spin_hz: float = spec(ge=0.0, le=500.0, doc="lowest commanded spin rate in flight")
-    max_spin_hz: float = spec(gt=0.0, le=500.0, doc="highest commanded spin rate")
+    # below 5 Hz (300 rpm) a propeller gives no usable thrust
+    max_spin_hz: float = spec(ge=5.0, le=500.0, doc="highest commanded spin rate")
+    # checked against the propeller diameter in VehicleParams (C_T window)
     thrust_coeff_n_per_hz2: float = spec(gt=0.0, le=1.0, doc="c_f: thrust = c_f w^2, w in Hz")
-    drag_coeff_m: float = spec(ge=0.0, le=1.0, doc="c_f^tau: drag torque = c_f^tau * thrust")
+    # every propeller has drag torque: the yaw authority at zero tilt comes from it
+    drag_coeff_m: float = spec(gt=0.0, le=1.0, doc="c_f^tau: drag torque = c_f^tau * thrust")
     first_rotor_ccw: bool = spec(True, doc="propeller 1 spins counter-clockwise (paper)")
 
     def __post_init__(self) -> None:
@@ -65,13 +106,47 @@ class RotorParams:
 class TiltParams:
     """The synchronised tilt drive: one servo, worm gears and Cardan chains."""
 
+    # at 90 deg the rotors lift nothing: the thrust-margin check in VehicleParams bounds it
     max_tilt_deg: float = spec(ge=0.0, le=90.0, doc="largest tilt the planner commands")
     mechanical_limit_deg: float = spec(ge=0.0, le=90.0, doc="hard stop of the mechanism")
-    max_rate_deg_s: float = spec(ge=0.0, le=360.0, doc="tilt rate limit")
-    worm_ratio: float = spec(gt=0.0, le=1.0, doc="k: tilt / drive-shaft angle (0.05 = 20:1)")
-    cardan_bend_deg: float = spec(ge=0.0, lt=90.0, doc="bending angle beta of each Cardan joint")
+    # 0 only for a fixed tilt (min == max); otherwise >= 0.5 deg/s: slower, a 30 deg step
+    # takes over a minute, longer than any experiment segment
+    max_rate_deg_s: float = spec(ge=0.0, le=360.0, doc="tilt rate limit (0: fixed tilt)")
+    # 200:1 is the steepest worm reduction sold; 1 = direct drive
+    worm_ratio: float = spec(ge=0.005, le=1.0, doc="k: tilt / drive-shaft angle (0.05 = 20:1)")
+    # universal joints bind beyond ~45 deg of bend (and their velocity ripple explodes)
+    cardan_bend_deg: float = spec(ge=0.0, le=45.0, doc="bending angle beta of each Cardan joint")
+    min_tilt_deg: float = spec(
+        0.0, ge=0.0, le=90.0, doc="smallest tilt the planner commands; equal to max_tilt_deg "
+        "for a fixed-tilt airframe")
 
     def __post_init__(self) -> None:
+        if self.min_tilt_deg > self.max_tilt_deg:
+            raise ConfigValueError(
+                "min_tilt_deg",
+                f"must not exceed max_tilt_deg ({self.max_tilt_deg:g} deg), "
+                f"got {self.min_tilt_deg:g}",
+            )
+        if self.is_fixed and self.max_rate_deg_s != 0.0:
+            raise ConfigValueError(
+                "max_rate_deg_s",
+                f"a fixed tilt (min_tilt_deg = max_tilt_deg = {self.max_tilt_deg:g}) does not "
+                f"move; expected 0, got {self.max_rate_deg_s:g}",
+            )
+        if not self.is_fixed and self.max_rate_deg_s < 0.5:
+            raise ConfigValueError(
+                "max_rate_deg_s",
+                f"expected >= 0.5 deg/s for a tilt range of {self.min_tilt_deg:g} to "
+                f"{self.max_tilt_deg:g} deg, got {self.max_rate_deg_s:g} (a fixed tilt: set "
+                "min_tilt_deg equal to max_tilt_deg)",
+            )
+        if self.max_rate_deg_s > SERVO_MAX_SPEED_DEG_S * self.worm_ratio:
+            raise ConfigValueError(
+                "max_rate_deg_s",
+                f"the servo (<= {SERVO_MAX_SPEED_DEG_S:g} deg/s) drives at most "
+                f"{SERVO_MAX_SPEED_DEG_S * self.worm_ratio:.1f} deg/s through a worm ratio of "
+                f"{self.worm_ratio:g}, got {self.max_rate_deg_s:g}",
+            )
         if self.max_tilt_deg > self.mechanical_limit_deg:
             raise ConfigValueError(
                 "max_tilt_deg",
@@ -83,23 +158,46 @@ class TiltParams:
     def max_tilt_rad(self) -> float:
         return math.radians(self.max_tilt_deg)
 
+    @property
+    def min_tilt_rad(self) -> float:
+        return math.radians(self.min_tilt_deg)
+
+    @property
+    def is_fixed(self) -> bool:
+        """A fixed-tilt airframe: alpha is min_tilt_deg = max_tilt_deg for the whole flight."""
+        return self.min_tilt_deg == self.max_tilt_deg
+
 
 @dataclass(frozen=True, kw_only=True)
 class ControllerParams:
     """Gains and constants of the full-pose geometric controller (paper Sec. IV, Table I)."""
 
-    kp_pos: Vec3 = spec(ge=0.0, doc="K_p, N/m")
-    ki_pos: Vec3 = spec(ge=0.0, doc="K_pi, N/(m s)")
-    kv_pos: Vec3 = spec(ge=0.0, doc="K_v, N s/m")
-    kr_att: Vec3 = spec(ge=0.0, doc="K_R, N m/rad")
-    ki_att: Vec3 = spec(ge=0.0, doc="K_Ri, N m/(rad s)")
-    kw_att: Vec3 = spec(ge=0.0, doc="K_w, N m s/rad")
-    pos_integral_limit_m_s: Vec3 = spec(gt=0.0, doc="|e_pi| bound per axis (anti-windup)")
-    att_integral_limit_rad_s: Vec3 = spec(gt=0.0, doc="|e_Ri| bound per axis (anti-windup)")
+    # Proportional and derivative gains: strictly positive (a zero gain leaves an axis
+    # uncontrolled); the pole checks against mass and inertia are in VehicleParams. The caps
+    # (1e4 N/m, 1e3 N m/rad) are far above any multirotor's and keep the checks finite.
+    kp_pos: Vec3 = spec(gt=0.0, le=1e4, doc="K_p, N/m")
+    # integral gains may be 0 (no integral action); the Hurwitz check bounds them from above
+    ki_pos: Vec3 = spec(ge=0.0, le=1e4, doc="K_pi, N/(m s)")
+    kv_pos: Vec3 = spec(gt=0.0, le=1e4, doc="K_v, N s/m")
+    kr_att: Vec3 = spec(gt=0.0, le=1e3, doc="K_R, N m/rad")
+    ki_att: Vec3 = spec(ge=0.0, le=1e3, doc="K_Ri, N m/(rad s)")
+    kw_att: Vec3 = spec(gt=0.0, le=1e3, doc="K_w, N m s/rad")
+    # anti-windup bounds: below 1 mm s / 1 mrad s the integrators do nothing, above
+    # 100 m s / 10 rad s they wind up for minutes before they saturate
+    pos_integral_limit_m_s: Vec3 = spec(ge=1e-3, le=100.0,
+                                        doc="|e_pi| bound per axis (anti-windup)")
+    att_integral_limit_rad_s: Vec3 = spec(ge=1e-3, le=10.0,
+                                          doc="|e_Ri| bound per axis (anti-windup)")
+    # 2^-60 of the bracket is below double precision: more iterations change nothing
     bisection_iterations: int = spec(20, ge=1, le=60, doc="n_it of Algorithm 1")
-    tikhonov_k1: float = spec(ge=0.0, doc="gamma(alpha) = k1 / (alpha + k2), alpha in rad")
-    tikhonov_k2_rad: float = spec(gt=0.0, doc="k2 of gamma(alpha), rad")
-    lateral_bound_scale: float = spec(gt=0.0, le=1.0, doc="conservative gain on r_xy(alpha)")
+    # k1 > 0: at alpha = 0 the allocation matrix is singular and needs the regulariser; at
+    # alpha = 0 gamma = k1 / k2 is checked below against the allocation's scale
+    tikhonov_k1: float = spec(gt=0.0, le=1e-2,
+                              doc="gamma(alpha) = k1 / (alpha + k2), alpha in rad")
+    # 1 mrad .. 1 rad: k2 sets where gamma falls off; below 1 mrad gamma(0) explodes
+    tikhonov_k2_rad: float = spec(ge=1e-3, le=1.0, doc="k2 of gamma(alpha), rad")
+    # a scale below 0.1 gives away 90 % of the lateral authority the tilt bought
+    lateral_bound_scale: float = spec(ge=0.1, le=1.0, doc="conservative gain on r_xy(alpha)")
     lateral_bound_dead_zone_deg: float = spec(ge=0.0, le=30.0, doc="r_xy = 0 below this tilt")
     attitude_feedforward: bool = spec(
         False, doc="add the reference angular velocity (not in the paper; paper-notes item 9)"
@@ -120,8 +218,11 @@ class VehicleParams:
 
     name: str
     description: str = spec(doc="free text")
-    mass_kg: float = spec(gt=0.0, le=100.0, doc="total mass m")
-    inertia_diag_kg_m2: Vec3 = spec(gt=0.0, le=100.0, doc="diagonal of J about O_B, body")
+    # 100 g (a micro hexarotor) .. 100 kg (the heaviest lab multirotors)
+    mass_kg: float = spec(ge=0.1, le=100.0, doc="total mass m")
+    # 1e-4 kg m^2: 100 g at 3 cm; 100 kg m^2: 100 kg at 1 m; checked against mass and arms
+    inertia_diag_kg_m2: Vec3 = spec(ge=1e-4, le=100.0, doc="diagonal of J about O_B, body")
+    # Earth's surface spans 9.76 (equator, altitude) .. 9.83 (poles)
     gravity_m_s2: float = spec(9.81, ge=9.7, le=9.9, doc="local gravitational acceleration")
     geometry: GeometryParams = spec()
     rotors: RotorParams = spec()
@@ -135,6 +236,19 @@ class VehicleParams:
                 "inertia_diag_kg_m2",
                 "principal moments violate the triangle inequality (not a physical body)",
             )
+        # radius of gyration about z against the arms: the motors sit at l, the hub at 0, so
+        # sqrt(J_zz / m) lies well inside (0.2 l, 1.5 l) (0.75 l for the prototype)
+        gyration_m = math.sqrt(izz / self.mass_kg)
+        arm_m = self.geometry.arm_length_m
+        if not 0.2 * arm_m <= gyration_m <= 1.5 * arm_m:
+            raise ConfigValueError(
+                "inertia_diag_kg_m2",
+                f"radius of gyration sqrt(J_zz/m) = {gyration_m:.3f} m does not fit a "
+                f"{self.mass_kg:g} kg frame with {arm_m:g} m arms (expected "
+                f"{0.2 * arm_m:.3f}..{1.5 * arm_m:.3f} m)",
+            )
+        self._check_rotors()
+        self._check_loops()
         max_lift_n = 6.0 * self.rotors.max_thrust_n * math.cos(self.tilt.max_tilt_rad)
         weight_n = self.mass_kg * self.gravity_m_s2
         if max_lift_n < 1.2 * weight_n:
@@ -151,6 +265,78 @@ class VehicleParams:
                 f"weight {weight_n:.1f} N (expected <= 80 % of it)",
             )
 
+    def _check_rotors(self) -> None:
+        d_m = self.geometry.propeller_diameter_m
+        c_t = self.rotors.thrust_coeff_n_per_hz2 / (AIR_DENSITY_KG_M3 * d_m**4)
+        lo, hi = THRUST_COEFF_CT_RANGE
+        if not lo <= c_t <= hi:
+            raise ConfigValueError(
+                "rotors.thrust_coeff_n_per_hz2",
+                f"means a thrust coefficient C_T = c_f/(rho D^4) = {c_t:.3g} for a "
+                f"{d_m:g} m propeller; real propellers have {lo:g}..{hi:g}",
+            )
+        ratio = self.rotors.drag_coeff_m / d_m
+        lo, hi = DRAG_PER_DIAMETER_RANGE
+        if not lo <= ratio <= hi:
+            raise ConfigValueError(
+                "rotors.drag_coeff_m",
+                f"drag torque per thrust of {self.rotors.drag_coeff_m:g} m is {ratio:.3g} "
+                f"propeller diameters; real propellers have {lo:g}..{hi:g}",
+            )
+
+    def _check_loops(self) -> None:
+        c = self.controller
+        inertia = self.inertia_diag_kg_m2
+        att_w_min = math.inf
+        for axis in range(3):
+            att_w = math.sqrt(c.kr_att[axis] / inertia[axis])
+            att_w_min = min(att_w_min, att_w) if axis < 2 else att_w_min
+            _check_loop(f"controller.kr_att[{axis}]", f"controller.kw_att[{axis}]",
+                        f"controller.ki_att[{axis}]", c.kr_att[axis], c.kw_att[axis],
+                        c.ki_att[axis], inertia[axis], "J", ATT_BANDWIDTH_RAD_S)
+        for axis in range(3):
+            _check_loop(f"controller.kp_pos[{axis}]", f"controller.kv_pos[{axis}]",
+                        f"controller.ki_pos[{axis}]", c.kp_pos[axis], c.kv_pos[axis],
+                        c.ki_pos[axis], self.mass_kg, "m", POS_BANDWIDTH_RAD_S)
+            # at zero tilt the position follows the attitude: it must be the slower loop
+            pos_w = math.sqrt(c.kp_pos[axis] / self.mass_kg)
+            if pos_w >= att_w_min:
+                raise ConfigValueError(
+                    f"controller.kp_pos[{axis}]",
+                    f"position loop ({pos_w:.1f} rad/s) must be slower than the roll/pitch "
+                    f"loop ({att_w_min:.1f} rad/s)",
+                )
+        # gamma(0) = k1/k2 adds to F^T F, whose yaw entries at zero tilt are ~ (c_f^tau)^2:
+        # a larger regulariser would cancel the yaw authority instead of conditioning it
+        gamma0 = c.tikhonov_k1 / c.tikhonov_k2_rad
+        yaw_scale = self.rotors.drag_coeff_m**2
+        if gamma0 > yaw_scale:
+            raise ConfigValueError(
+                "controller.tikhonov_k1",
+                f"gamma(0) = k1/k2 = {gamma0:.3g} swamps the yaw allocation (~ c_f^tau^2 = "
+                f"{yaw_scale:.3g}); expected k1 <= {yaw_scale * c.tikhonov_k2_rad:.3g}",
+            )
+
     @property
     def weight_n(self) -> float:
         return self.mass_kg * self.gravity_m_s2
+
+
+def _check_loop(k_key: str, d_key: str, i_key: str, k: float, d: float, ki: float,
+                inertia: float, inertia_name: str, bandwidth: tuple[float, float]) -> None:
+    """One linearised axis: natural frequency, damping and the integral's Hurwitz margin."""
+    w = math.sqrt(k / inertia)
+    if not bandwidth[0] <= w <= bandwidth[1]:
+        raise ConfigValueError(
+            k_key, f"gives a natural frequency sqrt(k/{inertia_name}) of {w:.3g} rad/s; "
+            f"expected {bandwidth[0]:g}..{bandwidth[1]:g} rad/s")
+    zeta = d / (2.0 * math.sqrt(k * inertia))
+    if not DAMPING_RANGE[0] <= zeta <= DAMPING_RANGE[1]:
+        raise ConfigValueError(
+            d_key, f"gives a damping ratio of {zeta:.3g}; expected "
+            f"{DAMPING_RANGE[0]:g}..{DAMPING_RANGE[1]:g} (near 0 the vehicle oscillates)")
+    # Routh-Hurwitz for I s^3 + d s^2 + k s + ki with a factor 2 of margin
+    if 2.0 * inertia * ki >= d * k:
+        raise ConfigValueError(
+            i_key, f"makes the loop unstable: expected < d k / (2 {inertia_name}) = "
+            f"{d * k / (2.0 * inertia):.3g}, got {ki:g}")

@@ -1,10 +1,12 @@
 """The tilt planner: the mission's alpha reference -> the tilt command sent to the servo.
 
-The command stays inside ``[0, max_tilt]`` and moves at most ``max_rate_deg_s`` (paper: 10 deg/s)
-towards its target. The target is the mission's ``alpha_r``, or in ``auto`` mode (the paper
-leaves alpha to "a high-level planner or a human operator") the smallest tilt whose lateral-force
-capability covers the lateral force the reference needs over a look-ahead horizon, plus a margin:
-the vehicle is only as fully actuated as the task requires and wastes the least internal force.
+The command stays inside ``[min_tilt, max_tilt]`` (``[0, 35]`` deg on the paper's vehicle; a
+single value on a fixed-tilt airframe, whose ``max_rate_deg_s`` is 0) and moves at most
+``max_rate_deg_s`` (paper: 10 deg/s) towards its target. The target is the mission's
+``alpha_r``, or in ``auto`` mode (the paper leaves alpha to "a high-level planner or a human
+operator") the smallest tilt whose lateral-force capability covers the lateral force the
+reference needs over a look-ahead horizon, plus a margin: the vehicle is only as fully actuated
+as the task requires and wastes the least internal force.
 
 Capability in ``auto`` is the admissible inscribed radius r(alpha) of the vehicle model (the
 least-squares fit, without the controller's conservative scale but with its dead zone): the
@@ -32,6 +34,7 @@ class TiltPlanner:
                  capability: LateralBound | None = None, initial_alpha_rad: float = 0.0
                  ) -> None:
         self.max_tilt_rad = params.tilt.max_tilt_rad
+        self.min_tilt_rad = params.tilt.min_tilt_rad
         self.max_rate_rad_s = math.radians(params.tilt.max_rate_deg_s)
         if capability is None:
             fitted = LateralBound.for_model(model if model is not None else VehicleModel(params))
@@ -44,16 +47,17 @@ class TiltPlanner:
         for a in self._grid_rad:
             radii.append(max(capability.radius_n(a), radii[-1] if radii else 0.0))
         self._radii_n = radii
-        self.alpha_cmd_rad = min(max(initial_alpha_rad, 0.0), self.max_tilt_rad)
+        self.alpha_cmd_rad = min(max(initial_alpha_rad, self.min_tilt_rad), self.max_tilt_rad)
         self.target_rad = self.alpha_cmd_rad
         self._last_t_s: float | None = None
 
     def alpha_for_lateral_force(self, force_n: float) -> float:
         """Smallest tilt (rad) whose capability covers ``force_n``; the maximum tilt if none."""
         if force_n <= 0.0:
-            return 0.0
+            return self.min_tilt_rad
         i = bisect.bisect_left(self._radii_n, force_n)
-        return self._grid_rad[i] if i < len(self._grid_rad) else self.max_tilt_rad
+        alpha = self._grid_rad[i] if i < len(self._grid_rad) else self.max_tilt_rad
+        return max(alpha, self.min_tilt_rad)
 
     def step(self, t_s: float, alpha_ref_rad: float | None, demand_n: float | None = None,
              margin_n: float = 0.0) -> float:
@@ -69,7 +73,7 @@ class TiltPlanner:
             self.target_rad = alpha_ref_rad
         elif demand_n is not None:
             self.target_rad = self.alpha_for_lateral_force(demand_n + margin_n)
-        target = min(max(self.target_rad, 0.0), self.max_tilt_rad)
+        target = min(max(self.target_rad, self.min_tilt_rad), self.max_tilt_rad)
         step = self.max_rate_rad_s * dt
         delta = target - self.alpha_cmd_rad
         self.alpha_cmd_rad += step if delta > step else (-step if delta < -step else delta)

@@ -21,10 +21,37 @@ def load_vehicle(name_or_path: str | Path = DEFAULT_VEHICLE) -> VehicleParams:
 from controller.missions import MISSION_SCHEMA, MissionSpec  # noqa: E402
 
 
-def load_mission(name_or_path: str | Path) -> MissionSpec:
-    """A shipped mission by name (``exp1-hover-tilt-steps``) or a mission YAML file."""
-    return load_config(find_config("missions", name_or_path), MissionSpec,
-                       schema=MISSION_SCHEMA, versions=(1,))
+def load_mission(name_or_path: str | Path, *, vehicle: VehicleParams | None = None,
+                 lines: dict[str, int] | None = None) -> MissionSpec:
+    """A shipped mission by name (``exp1-hover-tilt-steps``) or a mission YAML file.
+
+    With ``vehicle``, the mission is checked against it too (:func:`check_mission_against_vehicle`);
+    ``lines`` is filled with the line of each key path (see :func:`config.schema.load_config`).
+    """
+    path = find_config("missions", name_or_path)
+    lines = {} if lines is None else lines
+    spec = load_config(path, MissionSpec, schema=MISSION_SCHEMA, versions=(1,), lines=lines)
+    if vehicle is not None:
+        check_mission_against_vehicle(spec, vehicle, str(path), lines)
+    return spec
+
+
+def check_mission_against_vehicle(mission: MissionSpec, vehicle: VehicleParams, file: str,
+                                  lines: dict[str, int]) -> None:
+    """Every alpha the mission writes down lies in the vehicle's tilt range: an error at the
+    mission's line, never a silent clamp by the planner. (Segments without an alpha inherit
+    one; on a fixed-tilt vehicle the planner holds its tilt.)"""
+    from config.schema import ConfigError, line_of
+    from controller.missions import explicit_alphas_deg
+
+    tilt = vehicle.tilt
+    for key, value_deg in explicit_alphas_deg(mission):
+        if not tilt.min_tilt_deg <= value_deg <= tilt.max_tilt_deg:
+            what = (f"a fixed tilt of {tilt.max_tilt_deg:g} deg" if tilt.is_fixed else
+                    f"a tilt range of {tilt.min_tilt_deg:g}..{tilt.max_tilt_deg:g} deg")
+            raise ConfigError(file, line_of(lines, key), key,
+                              f"{value_deg:g} deg is outside vehicle {vehicle.name!r}'s tilt "
+                              f"({what})")
 
 
 # Simulator disturbance presets (appended).

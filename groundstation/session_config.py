@@ -3,23 +3,33 @@
 A session names the vehicle and the mission, picks the backend (real hardware with its device
 URIs, or the emulated vehicle with its clock and seed), and sets the estimator, the safety limits
 and the telemetry outputs. It is validated completely, including the files it refers to, before
-any port is opened.
+any port is opened: :func:`load_session` reads the session, resolves the vehicle, mission and
+disturbance references (a missing one is reported at the session's line of the key), validates
+each file on its own, then across files: the mission against the vehicle (tilt range) and
+against the geofence (every reference position inside it by :data:`GEOFENCE_MARGIN_M`), and the
+emulated MoCap against the session's timeouts.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
-from config import find_config
-from config.schema import ConfigValueError, load_config, spec
+from config import available, find_config
+from config.schema import ConfigError, ConfigValueError, line_of, load_config, spec
 from estimator.config import EstimatorConfig
 from groundstation.flight import SafetyLimits
 
 SESSION_SCHEMA = "fasthex.session"
 
 Vec3 = tuple[float, float, float]
+
+#: every reference position stays this far inside the geofence (m): the tracking error of a
+#: gust (a few cm) must not trip the fence on a mission that touches it
+GEOFENCE_MARGIN_M = 0.1
+#: |x|, |y|, |z| of a geofence corner (m): the sane workspace of the missions
+WORKSPACE_M = 100.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -30,7 +40,14 @@ class HardwareBackend:
     flight_ctrl_uri: str = spec(doc="e.g. serial:///dev/ttyUSB0?baud=500000")
     servo_uri: str = spec(doc="e.g. serial:///dev/ttyUSB1?baud=1000000&id=1")
     mocap_uri: str = spec(doc="e.g. natnet://192.168.1.10?local=192.168.1.2&body=fasthex")
+    # the tk3 streams 100 Hz .. 2 kHz; the loop and its 500 Hz paper rate sit inside
     imu_rate_hz: float = spec(500.0, ge=100.0, le=2000.0)
+
+    def __post_init__(self) -> None:
+        for key in ("flight_ctrl_uri", "servo_uri", "mocap_uri"):
+            if "://" not in getattr(self, key):
+                raise ConfigValueError(key, "expected a device URI (SCHEME://...), got "
+                                       f"{getattr(self, key)!r}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -39,12 +56,14 @@ class EmulatedBackend:
 
     kind: Literal["emulated"]
     clock: Literal["realtime", "lockstep"] = spec("lockstep")
-    seed: int = spec(1, ge=0)
+    seed: int = spec(1, ge=0, le=2**32 - 1, doc="numpy seeds are 32-bit")
     disturbances: str = spec("paper-calibrated", doc="simulator preset (disturbances, sensor "
                              "noise, MoCap rate and latency): name or file")
     imu_rate_hz: float = spec(500.0, ge=100.0, le=2000.0, doc="IMU stream rate requested")
-    faults: tuple[str, ...] = spec((), doc="faults to rehearse, KIND@T[:DURATION] in simulated "
-                                   "seconds: mocap-dropout, fc-disconnect, servo-silent")
+    faults: tuple[str, ...] = spec((), doc="faults to rehearse, KIND@T[:VALUE], T in simulated "
+                                   "seconds: mocap-dropout:S, fc-disconnect, servo-silent, "
+                                   "battery-sag:V, tilt-kick:DEG_S, imu-rate:FRACTION, "
+                                   "imu-gap:S, mocap-jump:M")
     corrupt_prob: float = spec(0.0, ge=0.0, le=0.1,
                                doc="byte corruption probability on the Flight-Ctrl link")
 
@@ -60,11 +79,16 @@ class EmulatedBackend:
 
 @dataclass(frozen=True, kw_only=True)
 class SafetyConfig:
-    geofence_min_m: Vec3 = spec((-3.0, -3.0, -0.5))
-    geofence_max_m: Vec3 = spec((3.0, 3.0, 3.0))
-    max_body_tilt_deg: float = spec(45.0, gt=0.0, le=90.0)
-    mocap_timeout_s: float = spec(1.0, gt=0.0, le=10.0, doc="MoCap lost this long -> land")
-    imu_timeout_s: float = spec(0.05, gt=0.0, le=1.0, doc="IMU silent this long -> motors stop")
+    geofence_min_m: Vec3 = spec((-3.0, -3.0, -0.5), ge=-WORKSPACE_M, le=WORKSPACE_M)
+    geofence_max_m: Vec3 = spec((3.0, 3.0, 3.0), ge=-WORKSPACE_M, le=WORKSPACE_M)
+    # below 5 deg the paper's own 6 deg roll sine would trip it
+    max_body_tilt_deg: float = spec(45.0, ge=5.0, le=90.0)
+    # two frames of a 100 Hz MoCap at least; beyond 10 s the vehicle drifts metres blind
+    mocap_timeout_s: float = spec(1.0, ge=0.02, le=10.0, doc="MoCap lost this long -> land")
+    # >= 2 IMU periods (checked against the backend's rate); > 1 s is far past the board's
+    # own watchdog
+    imu_timeout_s: float = spec(0.05, ge=1e-3, le=1.0, doc="IMU silent this long -> motors stop")
+    # 0 switches the check off (emulated); 60 V is a 14S pack, above any lab multirotor's
     min_battery_v: float = spec(13.2, ge=0.0, le=60.0)
     failsafe_action: Literal["land", "cut"] = spec("land")
     servo_fault_action: Literal["hold", "land"] = spec("hold")
@@ -76,6 +100,11 @@ class SafetyConfig:
             if lo >= hi:
                 raise ConfigValueError(f"geofence_min_m[{axis}]",
                                        f"must be below geofence_max_m[{axis}] ({hi:g} m)")
+            # the fence must hold the vehicle plus the margin on both sides
+            if hi - lo < 0.5:
+                raise ConfigValueError(f"geofence_max_m[{axis}]",
+                                       f"a fence {hi - lo:g} m wide leaves no room to fly; "
+                                       "expected >= 0.5 m")
 
     def limits(self) -> SafetyLimits:
         return SafetyLimits(
@@ -106,17 +135,112 @@ class SessionConfig:
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     telemetry: TelemetryConfig = field(default_factory=TelemetryConfig)
 
+    def __post_init__(self) -> None:
+        rate_hz = self.backend.imu_rate_hz
+        if self.safety.imu_timeout_s < 2.0 / rate_hz:
+            raise ConfigValueError(
+                "safety.imu_timeout_s", f"expected >= two IMU periods at {rate_hz:g} Hz "
+                f"({2.0 / rate_hz:g} s), got {self.safety.imu_timeout_s:g}")
+
 
 def load_session(name_or_path: str | Path) -> SessionConfig:
-    """A shipped session by name or a session file; the vehicle and mission it names are
-    resolved and validated too (their errors name their own files)."""
-    from groundstation.configs import load_mission, load_vehicle
+    """A shipped session by name or a session file, with every file it refers to, validated
+    on its own and across files (module docstring). Errors name the file and line at fault:
+    a missing reference the session's line, a broken referenced file its own line.
+
+    A disturbance preset given as a file is returned resolved against the session file (as
+    the vehicle and mission are), so that the emulator reads the file that was validated.
+    """
+    from groundstation.configs import (
+        check_mission_against_vehicle,
+        load_disturbances,
+        load_mission,
+        load_vehicle,
+    )
 
     path = find_config("sessions", name_or_path)
-    session = load_config(path, SessionConfig, schema=SESSION_SCHEMA, versions=(1,))
-    load_vehicle(resolve_reference(path, session.vehicle))
-    load_mission(resolve_reference(path, session.mission))
+    lines: dict[str, int] = {}
+    session = load_config(path, SessionConfig, schema=SESSION_SCHEMA, versions=(1,), lines=lines)
+    vehicle_path = _reference(path, lines, "vehicle", "vehicles", session.vehicle)
+    mission_path = _reference(path, lines, "mission", "missions", session.mission)
+    params = load_vehicle(vehicle_path)
+    mission_lines: dict[str, int] = {}
+    mission = load_mission(mission_path, lines=mission_lines)
+    check_mission_against_vehicle(mission, params, str(mission_path), mission_lines)
+    _check_geofence(mission, session.safety, str(mission_path), mission_lines, path, lines)
+    backend = session.backend
+    if isinstance(backend, EmulatedBackend):
+        preset_path = _reference(path, lines, "backend.disturbances", "disturbances",
+                                 backend.disturbances)
+        preset = load_disturbances(preset_path)
+        _check_emulated_mocap(preset, session, str(preset_path), path, lines)
+        if Path(backend.disturbances).suffix in (".yaml", ".yml"):
+            session = replace(session, backend=replace(backend, disturbances=str(preset_path)))
     return session
+
+
+def _reference(session_path: Path, lines: dict[str, int], key: str, kind: str, ref: str) -> Path:
+    """The file a session's reference names; a missing one is the session's error."""
+    try:
+        return find_config(kind, resolve_reference(session_path, ref))
+    except ConfigError:
+        pass
+    line = line_of(lines, key)
+    if Path(ref).suffix in (".yaml", ".yml") or "/" in ref:
+        message = f"no such file {ref!r} (relative to the session file)"
+    else:
+        message = (f"no such {kind[:-1]} {ref!r} (shipped: "
+                   f"{', '.join(available(kind)) or 'none'})")
+    raise ConfigError(str(session_path), line, key, message) from None
+
+
+def _check_geofence(mission: object, safety: SafetyConfig, mission_file: str,
+                    mission_lines: dict[str, int], session_path: Path,
+                    session_lines: dict[str, int]) -> None:
+    """Every reference position of the mission inside the geofence, less the margin."""
+    from controller.missions import MissionSpec, segment_extents_w_m
+
+    assert isinstance(mission, MissionSpec)
+    lo_fence = tuple(v + GEOFENCE_MARGIN_M for v in safety.geofence_min_m)
+    hi_fence = tuple(v - GEOFENCE_MARGIN_M for v in safety.geofence_max_m)
+    fence = (f"the geofence of {session_path} (line "
+             f"{line_of(session_lines, 'safety.geofence_min_m')}) less {GEOFENCE_MARGIN_M:g} m")
+    checks: list[tuple[str, Vec3, Vec3]] = [
+        ("start_pos_w_m", mission.start_pos_w_m, mission.start_pos_w_m)]
+    for i, (seg, (lo, hi)) in enumerate(zip(mission.segments, segment_extents_w_m(mission),
+                                            strict=True)):
+        field_name = {"takeoff": "height_m", "sine": "amplitude_m", "land": "sink_m"}.get(
+            seg.kind, "pos_w_m")
+        checks.append((f"segments[{i}].{field_name}", lo, hi))
+    for key, lo, hi in checks:
+        for axis in range(3):
+            if lo[axis] < lo_fence[axis] or hi[axis] > hi_fence[axis]:
+                value = lo[axis] if lo[axis] < lo_fence[axis] else hi[axis]
+                raise ConfigError(
+                    mission_file, line_of(mission_lines, key), key,
+                    f"reaches {'xyz'[axis]} = {value:g} m, outside {fence} "
+                    f"({lo_fence[axis]:g}..{hi_fence[axis]:g} m)")
+
+
+def _check_emulated_mocap(preset: object, session: SessionConfig, preset_file: str,
+                          session_path: Path, lines: dict[str, int]) -> None:
+    """The emulated MoCap must be able to keep the session's timeouts quiet."""
+    from sim_backend.disturbances import DisturbancePreset
+
+    assert isinstance(preset, DisturbancePreset)
+    period_s = 1.0 / preset.mocap_rate_hz
+    for key, timeout_s in (("safety.mocap_timeout_s", session.safety.mocap_timeout_s),
+                           ("estimator.mocap_stale_s", session.estimator.mocap_stale_s)):
+        if period_s >= timeout_s:
+            raise ConfigError(
+                str(session_path), line_of(lines, key), key,
+                f"{timeout_s:g} s is within one frame of the emulated MoCap "
+                f"({preset.mocap_rate_hz:g} Hz in {preset_file}); expected > {period_s:g} s")
+    if preset.mocap_latency_s >= session.estimator.history_s:
+        raise ConfigError(
+            str(session_path), line_of(lines, "estimator.history_s"), "estimator.history_s",
+            f"{session.estimator.history_s:g} s cannot fuse poses {preset.mocap_latency_s:g} s "
+            f"late (mocap_latency_s in {preset_file}); expected more")
 
 
 def resolve_reference(session_path: Path, ref: str) -> str | Path:

@@ -128,12 +128,12 @@ class FastHexSimulator:
         self.touchdown_speeds_m_s: list[float] = []
         self._w = [0.0] * N_ROTORS
         self._w_cmd = [0.0] * N_ROTORS
-        self._servo = 0.0
-        self._servo_goal = 0.0
+        # a fixed-tilt airframe (min = max tilt, rate 0) is built at its tilt
+        self._servo = self._servo_goal = math.radians(params.tilt.min_tilt_deg)
         self._ou = [0.0, 0.0, 0.0]
         self._fb: Vec3 = (0.0, 0.0, 0.0)
         self._fext: Vec3 = (0.0, 0.0, 0.0)
-        self._set_tilts(0.0)
+        self._set_tilts(self._servo)
 
     # -- geometry of the propellers ---------------------------------------------------------
     def _set_tilts(self, servo_rad: float) -> list[float]:
@@ -356,6 +356,16 @@ class FastHexSimulator:
     def read_imu(self) -> ImuReading:
         x = self._x
         return self.imu.sample(self._t, (x[10], x[11], x[12]), self.specific_force_b())
+
+    def kick_body_rate(self, d_omega_b_rad_s: Vec3) -> None:
+        """Fault hook: an impulsive torque (a blow to the airframe) changes the body rate by
+        ``d_omega_b_rad_s`` at once. No effect while resting on the ground."""
+        if self.landed:
+            return
+        x = self._x
+        x[10] += d_omega_b_rad_s[0]
+        x[11] += d_omega_b_rad_s[1]
+        x[12] += d_omega_b_rad_s[2]
 
     def command_tilt_rad(self, tilt_rad: float) -> None:
         self._servo_goal = min(max(float(tilt_rad), 0.0), self._tilt_max)

@@ -79,7 +79,7 @@ def simulate(args: argparse.Namespace) -> dict[str, Any]:
     from sim_backend.closed_loop import StateSource, UkfStateSource, fly_mission
 
     params = load_vehicle(args.vehicle)
-    mission = Mission(load_mission(args.mission))
+    mission = Mission(load_mission(args.mission, vehicle=params))  # checked against it
     preset = load_disturbances(args.preset)
     if args.duration is not None and args.duration <= 0.0:
         raise UserError(f"--duration must be positive, got {args.duration}")

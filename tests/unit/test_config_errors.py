@@ -33,13 +33,13 @@ CASES = [
      "unknown key; expected one of: controller, description, geometry, gravity_m_s2, "
      "inertia_diag_kg_m2, mass_kg, name, rotors, tilt"),
     ("wrong type", ("mass_kg: 3.1", "mass_kg: heavy"), "mass_kg", "mass_kg",
-     "expected a number > 0 and <= 100, got 'heavy'"),
+     "expected a number >= 0.1 and <= 100, got 'heavy'"),
     ("out of range", ("mass_kg: 3.1", "mass_kg: -3"), "mass_kg", "mass_kg",
-     "expected a number > 0 and <= 100, got -3"),
+     "expected a number >= 0.1 and <= 100, got -3"),
     ("bool for a number", ("mass_kg: 3.1", "mass_kg: yes"), "mass_kg", "mass_kg",
-     "expected a number > 0 and <= 100, got True"),
+     "expected a number >= 0.1 and <= 100, got True"),
     ("quoted number", ("mass_kg: 3.1", 'mass_kg: "3.1"'), "mass_kg", "mass_kg",
-     "expected a number > 0 and <= 100, got '3.1'"),
+     "expected a number >= 0.1 and <= 100, got '3.1'"),
     ("not finite", ("mass_kg: 3.1", "mass_kg: .nan"), "mass_kg", "mass_kg",
      "expected a finite number, got nan"),
     ("min spin >= max spin", ("min_spin_hz: 16.0", "min_spin_hz: 110.0"), "min_spin_hz",
@@ -91,7 +91,7 @@ def test_that_a_missing_key_names_the_enclosing_section(tmp_path: Path) -> None:
     with pytest.raises(ConfigError) as info:
         load_vehicle(path)
     assert str(info.value) == (f"{path}:{_line_of(text, 'min_spin_hz')}: rotors.drag_coeff_m: "
-                               "missing key; expected a number >= 0 and <= 1")
+                               "missing key; expected a number > 0 and <= 1")
 
 
 def test_that_broken_yaml_syntax_gives_the_line(tmp_path: Path) -> None:
@@ -130,7 +130,7 @@ def test_that_the_cli_prints_one_line_and_exits_2(tmp_path: Path,
     assert main(["analyze", "--vehicle", str(path)]) == 2
     err = capsys.readouterr().err
     assert err == (f"fasthex: config error: {path}:{_line_of(GOOD, 'mass_kg')}: mass_kg: "
-                   "expected a number > 0 and <= 100, got -3\n")
+                   "expected a number >= 0.1 and <= 100, got -3\n")
 
 
 def test_that_the_installed_command_shows_no_traceback(tmp_path: Path) -> None:
