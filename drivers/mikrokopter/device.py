@@ -559,27 +559,33 @@ class FlightCtrl:
                         for d, s in zip(dirs, speeds_hz, strict=True))
         self._write(framing_tk3.encode_frame(mkm.SpinRates(periods).encode()))
 
-    def start_motors(self, timeout_s: float = 3.0) -> MotorsSnapshot:
-        """Start every motor (``g`` per motor) and wait until all report ``spinning``.
+    def start_motors(self, timeout_s: float = 3.0, idle_spin_hz: float = 16.0
+                     ) -> MotorsSnapshot:
+        """Start every motor as the flight loop arms, and wait until all report ``spinning``.
 
-        While waiting, one slowest-speed ``w`` is sent per IMU sample (or every 20 ms without
-        an IMU stream), as the flight loop would, so that the board's watchdog stays fed (and a
-        lockstep emulator advances). ``g`` is re-sent every 100 such periods to motors that are
-        neither starting nor spinning. On an emergency flag or a timeout every motor is stopped
-        and :class:`MotorStartError` raised. Needs the motor (``M``) stream.
+        The loop's sequence: :meth:`request_motor_start` (``g`` per motor), then one ``w`` at
+        ``idle_spin_hz`` per IMU sample (or every 20 ms without an IMU stream), so that the
+        board's watchdog stays fed (and a lockstep emulator advances). The idle speed must be
+        above 1e6/65535 = 15.26 Hz: below it ``w`` carries the slowest half period 32767, which
+        tk3 hosts send to stop (``mk_servo_stop``) and a board may take as stop. ``g`` is
+        re-sent every 100 such periods to motors that are neither starting nor spinning. On an
+        emergency flag or a timeout every motor is stopped and :class:`MotorStartError` raised.
+        Needs the motor (``M``) stream.
         """
+        if not idle_spin_hz > mkm.MIN_SPIN_HZ:
+            raise ValueError(f"{self.device}: idle_spin_hz {idle_spin_hz} must be above "
+                             f"{mkm.MIN_SPIN_HZ:.2f} Hz (below it w means the slowest speed)")
         if self._rates["motor"] <= 0.0:
             raise MotorStartError(self.device, "the motor stream is off: cannot see the motors")
         n = self.config.n_motors
-        for motor_id in range(1, n + 1):
-            self._write(framing_tk3.encode_frame(mkm.StartMotors(motor_id).encode()))
-        slowest = [0.0] * n
+        self.request_motor_start()
+        idle = [idle_spin_hz] * n
         deadline = time.monotonic() + timeout_s
         ticks = 0
         while True:
             if self.wait_next(0.02) is None and self._lost is not None:
                 raise self._lost
-            self.send_rotor_speeds_hz(slowest)
+            self.send_rotor_speeds_hz(idle)
             ticks += 1
             snap = self.motors()
             if snap.any_emergency:
@@ -674,7 +680,24 @@ class FlightCtrl:
     # ---------------------------------------------------------------- lifetime
 
     def close(self) -> None:
-        """Stop the reader thread and release the transport. Does not stop the motors."""
+        """Leave the board as found, then stop the reader thread and release the transport.
+
+        Sends ``x`` (stop every motor) and sets the ``b``, ``m``, ``i``, ``c`` stream periods to
+        0, best effort (a board that is gone cannot be told): a board left streaming fills the
+        next client's input, and one left spinning waits for its BL watchdog. Only to a board
+        that spoke tk3 on this link (a silent port or a stock board gets no tk3 bytes).
+        Idempotent.
+        """
+        with self._cond:
+            heard_tk3 = (self._connected or self._identity is not None or self._imu_count > 0
+                         or self._motor_updates > 0)
+        if heard_tk3 and not self._stop.is_set() and self._lost is None:
+            with contextlib.suppress(TransportError, OSError):
+                self.stop_motors()
+                for stream in (mkm.Stream.BATTERY, mkm.Stream.MOTOR, mkm.Stream.IMU,
+                               mkm.Stream.MAG):
+                    self._write(framing_tk3.encode_frame(
+                        mkm.SetStreamPeriod(stream, 0).encode()))
         self._stop.set()
         with self._cond:
             self._cond.notify_all()

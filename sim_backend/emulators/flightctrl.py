@@ -255,6 +255,17 @@ class EmulatedFlightCtrl:
         """What the emulated BL-Ctrls last told the vehicle's rotors (Hz; 0 = stopped)."""
         return self._rotor_cmd
 
+    @property
+    def streams_on(self) -> bool:
+        """True while any stream is on: what a client that leaves cleanly must switch off."""
+        return bool(self._periods_ns)
+
+    @property
+    def motors_on(self) -> bool:
+        """True while any motor is starting or spinning (not stopped by ``x`` or the
+        watchdog)."""
+        return any(m.state != _MotorState.OFF for m in list(self._motors))
+
     def __enter__(self) -> EmulatedFlightCtrl:
         return self.start()
 
