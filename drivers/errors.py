@@ -37,18 +37,29 @@ class TransportUriError(TransportError, ValueError):
 
 
 class DeviceOpenError(TransportError):
-    """The device could not be opened (missing, busy, no permission...).
+    """The device could not be opened (missing, busy, no permission, unsupported baud...).
 
     ``errno`` is the OS error number when there is one (``errno.ENOENT`` for a missing port).
+    ``device`` is the path; ``uri``, when given, is what the operator wrote (the URI with its
+    options) and leads the one-line message: ``URI: what is wrong``.
     """
 
-    def __init__(self, device: str, errno: int | None, message: str | None = None) -> None:
+    def __init__(self, device: str, errno: int | None, message: str | None = None,
+                 uri: str | None = None) -> None:
         self.errno = errno
+        self.uri = uri if uri is not None else device
         if message is None:
             reason = os.strerror(errno) if errno is not None else "cannot open"
             name = _errno.errorcode.get(errno, "") if errno is not None else ""
             message = f"cannot open: {reason}" + (f" ({name})" if name else "")
-        super().__init__(device, message)
+        super().__init__(device, " ".join(message.split()))  # one line, whatever the OS said
+        self.args = (f"{self.uri}: {self.message}",)
+
+    def __str__(self) -> str:
+        return f"{self.uri}: {self.message}"
+
+    def __reduce__(self) -> tuple[type[DeviceOpenError], tuple[str, int | None, str, str]]:
+        return (type(self), (self.device, self.errno, self.message, self.uri))
 
 
 class DeviceLostError(TransportError):

@@ -11,6 +11,11 @@ A transport only moves bytes; framing lives in the codecs. Contract (:class:`Tra
 - Failures are typed (:mod:`drivers.errors`) and name the device: :class:`DeviceOpenError`
   (with ``errno``) when it cannot be opened, :class:`DeviceLostError` when an open device
   disappears (USB adapter unplugged, emulator gone).
+- Serial realities, each one line ``URI: what is wrong`` (:func:`describe_open_error`): port
+  absent, permission denied (naming the group that owns the device, e.g. ``dialout``), port
+  already open by another process (every tty is opened with an exclusive ``flock``, real ports
+  also with ``TIOCEXCL``; the holder's pid is named when ``/proc`` shows it), a baud rate the
+  adapter cannot do.
 
 URI forms understood by :func:`open_transport` with the default registry :data:`TRANSPORTS`:
 
@@ -18,8 +23,10 @@ URI forms understood by :func:`open_transport` with the default registry :data:`
     A real serial port through pyserial: raw 8N1, no flow control, exclusive access. ``baud``
     defaults to 500000 (the LAAS tk3 link); ``baud=0`` leaves the line speed alone (what a pty
     or an already configured port wants). On Linux the driver asks for low latency
-    (``ASYNC_LOW_LATENCY``) and, for FTDI adapters, lowers ``latency_timer`` to 1 ms when it is
-    allowed to (the default 16 ms would batch a 500 Hz stream); ``low_latency=0`` skips both.
+    (``ASYNC_LOW_LATENCY``) and, for USB-serial adapters (``ttyUSB*``), reads the
+    ``latency_timer`` (``/sys/bus/usb-serial/devices/<tty>/latency_timer``), lowers it to 1 ms
+    when it is allowed to, and warns with the command to fix it when it stays above 1 ms (the
+    default 16 ms would batch a 500 Hz stream); ``low_latency=0`` skips both.
 ``pty:///tmp/fasthex/flight-ctrl``
     The slave side of a pseudo-terminal (an emulator), opened raw; no line speed.
 ``/dev/ttyUSB0`` (a bare path)
@@ -37,6 +44,7 @@ add fake schemes instead of mutating module state.
 from __future__ import annotations
 
 import contextlib
+import errno as _errno
 import logging
 import os
 import select
@@ -54,6 +62,7 @@ from drivers.errors import DeviceLostError, DeviceOpenError, TransportError, Tra
 
 __all__ = [
     "DEFAULT_BAUD",
+    "LATENCY_TIMER_ROOT",
     "TRANSPORTS",
     "FdTransport",
     "LoopTransport",
@@ -61,6 +70,8 @@ __all__ = [
     "Transport",
     "TransportFactory",
     "TransportUri",
+    "check_latency_timer",
+    "describe_open_error",
     "open_transport",
     "parse_uri",
 ]
@@ -235,16 +246,100 @@ class FdTransport:
         self.close()
 
 
-def _open_raw_tty(path: str) -> int:
+# ------------------------------------------------------------------------ serial realities
+
+def _holders(path: str) -> list[tuple[int, str]]:
+    """(pid, command) of the processes with ``path`` open, as far as ``/proc`` shows them
+    (other users' processes are invisible to a non-root caller: then the list is short)."""
+    real = os.path.realpath(path)
+    found: list[tuple[int, str]] = []
+    with contextlib.suppress(OSError):
+        for entry in os.scandir("/proc"):
+            if not entry.name.isdigit():
+                continue
+            try:
+                fds = os.scandir(f"/proc/{entry.name}/fd")
+            except OSError:
+                continue
+            with fds:
+                for fd in fds:
+                    try:
+                        if os.readlink(fd.path) == real:
+                            comm = Path(f"/proc/{entry.name}/comm").read_text().strip()
+                            found.append((int(entry.name), comm))
+                            break
+                    except OSError:
+                        continue
+    return found
+
+
+def describe_open_error(path: str, err: int | None, detail: str = "", *,
+                        baud: int | None = None, pty: bool = False) -> str:
+    """What the operator needs to read when ``path`` does not open with OS error ``err``: one
+    line, with the fix where there is one. ``detail`` is the OS's own text (kept when the errno
+    alone says little); ``baud``: the line speed asked for; ``pty``: an emulator's pty."""
+    if err == _errno.ENOENT:
+        if pty:
+            return "no such pty: is the emulator (`fasthex emulate`) running?"
+        return ("no such device: is the adapter plugged in and powered? (`ls -l "
+                "/dev/serial/by-id/` lists the USB-serial adapters)")
+    if err in (_errno.EACCES, _errno.EPERM):
+        import grp
+        import stat
+
+        try:
+            st = os.stat(path)
+            group = grp.getgrgid(st.st_gid).gr_name
+        except (OSError, KeyError):
+            return "permission denied (and its owner cannot be read)"
+        mode = stat.filemode(st.st_mode)
+        if not st.st_mode & stat.S_IRWXG:
+            return f"permission denied: {mode} leaves no access to its group {group!r}"
+        return (f"permission denied: the device ({mode}) belongs to group {group!r}; add "
+                f"yourself with `sudo usermod -aG {group} $USER` and log in again")
+    if err in (_errno.EBUSY, _errno.EAGAIN, _errno.EWOULDBLOCK):
+        holders = _holders(path)
+        others = [h for h in holders if h[0] != os.getpid()]
+        if holders and not others:
+            return "already open by this process (one owner per port)"
+        who = ", ".join(f"pid {pid} ({comm})" for pid, comm in others[:3])
+        return ("already open by another process" + (f": {who}" if who else "")
+                + "; close it first (one owner per port)")
+    if err in (_errno.ENXIO, _errno.ENODEV, _errno.EIO):
+        return "the device node exists but nothing answers behind it (adapter unplugged?)"
+    if err == _errno.EINVAL and baud is not None:
+        return (f"the adapter cannot run at {baud} baud (the driver refused the line speed); "
+                "tk3 boards run at 500000, stock ones at 57600")
+    reason = os.strerror(err) if err is not None else "cannot open"
+    return f"cannot open: {reason}" + (f" ({detail})" if detail else "")
+
+
+def _lock(fd: int, path: str, uri: str) -> None:
+    """Exclusive advisory lock (what pyserial's ``exclusive=True`` takes; root included)."""
+    import fcntl
+
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as exc:
+        os.close(fd)
+        raise DeviceOpenError(path, _errno.EBUSY, describe_open_error(path, _errno.EBUSY),
+                              uri) from exc
+
+
+def _open_raw_tty(path: str, uri: str | None = None, pty: bool = False) -> int:
+    uri = uri if uri is not None else path
     try:
         fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
     except OSError as exc:
-        raise DeviceOpenError(path, exc.errno) from exc
+        raise DeviceOpenError(path, exc.errno, describe_open_error(path, exc.errno, pty=pty),
+                              uri) from exc
     try:
         tty.setraw(fd)
     except Exception as exc:
         os.close(fd)
-        raise DeviceOpenError(path, getattr(exc, "errno", None), f"not a tty: {exc}") from exc
+        raise DeviceOpenError(path, getattr(exc, "errno", None), f"not a tty: {exc}",
+                              uri) from exc
+    _lock(fd, path, uri)
     return fd
 
 
@@ -252,38 +347,49 @@ def _open_pty(uri: TransportUri, registry: Mapping[str, TransportFactory]) -> Tr
     uri.check_options((), "pty://<path>")
     if not uri.target:
         raise TransportUriError(uri.uri, "missing path; expected pty://<path>")
-    return FdTransport(uri.target, _open_raw_tty(uri.target))
+    return FdTransport(uri.target, _open_raw_tty(uri.target, uri.uri, pty=True))
 
 
-def _ftdi_latency_timer(path: str) -> Path | None:
+LATENCY_TIMER_ROOT = Path("/sys/bus/usb-serial/devices")
+"""Where Linux shows a USB-serial adapter's ``latency_timer`` (ms), one directory per tty."""
+
+
+def check_latency_timer(path: str, root: Path = LATENCY_TIMER_ROOT, *, lower: bool = False
+                        ) -> tuple[int | None, str | None]:
+    """The USB-serial latency timer of the port ``path`` (ms; ``None``: not a ``ttyUSB`` or
+    not readable) and a warning line when it is above 1 ms. ``lower`` first tries to write 1
+    (allowed to root, or with a udev rule)."""
     name = os.path.basename(os.path.realpath(path))
-    candidate = Path("/sys/class/tty") / name / "device" / "latency_timer"
-    return candidate if candidate.exists() else None
+    if not name.startswith("ttyUSB"):
+        return None, None
+    timer = root / name / "latency_timer"
+    try:
+        value = int(timer.read_text().strip())
+        if value > 1 and lower:
+            with contextlib.suppress(OSError):
+                timer.write_text("1")
+            value = int(timer.read_text().strip())
+    except (OSError, ValueError):
+        return None, None
+    if value <= 1:
+        return value, None
+    return value, (f"USB-serial latency timer is {value} ms: a 500 Hz stream arrives in "
+                   f"{value} ms batches (want 1 ms); fix: `echo 1 | sudo tee {timer}` (or a "
+                   f"udev rule: ATTR{{latency_timer}}=\"1\")")
 
 
-def _set_low_latency(name: str, ser: object, transport: FdTransport) -> None:
-    """Best effort: ASYNC_LOW_LATENCY, then the FTDI latency timer down to 1 ms."""
+def _set_low_latency(name: str, uri: str, ser: object, transport: FdTransport) -> None:
+    """Best effort: ASYNC_LOW_LATENCY, then the USB-serial latency timer down to 1 ms."""
     setter = getattr(ser, "set_low_latency_mode", None)
     if setter is not None:
         try:
             setter(True)
         except (OSError, ValueError) as exc:
             log.debug("%s: low-latency mode not available: %s", name, exc)
-    timer = _ftdi_latency_timer(name)
-    if timer is None:
-        return
-    try:
-        value = int(timer.read_text().strip())
-        if value > 1:
-            with contextlib.suppress(OSError):
-                timer.write_text("1")
-            value = int(timer.read_text().strip())
-    except (OSError, ValueError):
-        return
+    value, warning = check_latency_timer(name, lower=True)
     transport.latency_timer_ms = value
-    if value > 1:
-        log.warning("%s: FTDI latency_timer is %d ms (want 1 ms; write 1 to %s)",
-                    name, value, timer)
+    if warning is not None:
+        log.warning("%s: %s", uri, warning)
 
 
 _SERIAL_FORM = "serial://<device>?baud=<int>&low_latency=<0|1>"
@@ -298,23 +404,58 @@ def _open_serial(uri: TransportUri, registry: Mapping[str, TransportFactory]) ->
     low_latency = uri.int_option("low_latency", 1, _SERIAL_FORM)
     if baud == 0:
         # Leave the line speed alone (rotorcraft's "baud 0"): a pty or a pre-configured port.
-        return FdTransport(path, _open_raw_tty(path))
+        return FdTransport(path, _open_raw_tty(path, uri.uri))
     import serial
 
     try:
         ser = serial.Serial(port=path, baudrate=baud, bytesize=8, parity="N", stopbits=1,
                             timeout=0, xonxoff=False, rtscts=False, dsrdtr=False,
                             exclusive=True)
-    except serial.SerialException as exc:
-        raise DeviceOpenError(path, getattr(exc, "errno", None), f"cannot open: {exc}")\
-            from exc
-    except (OSError, ValueError) as exc:
-        raise DeviceOpenError(path, getattr(exc, "errno", None), f"cannot open: {exc}")\
-            from exc
-    transport = FdTransport(path, ser.fileno(), on_close=ser.close)
+    except (serial.SerialException, OSError, ValueError) as exc:
+        raise _serial_open_error(path, uri.uri, baud, exc) from exc
+    _set_exclusive(ser)
+    transport = FdTransport(path, ser.fileno(), on_close=lambda: _close_serial(ser))
     if low_latency:
-        _set_low_latency(path, ser, transport)
+        _set_low_latency(path, uri.uri, ser, transport)
     return transport
+
+
+def _serial_open_error(path: str, uri: str, baud: int, exc: Exception) -> DeviceOpenError:
+    """pyserial's failures, sorted: absent or forbidden (asked of the node itself: pyserial
+    folds those into one text), busy (its flock), the line speed, anything else."""
+    text = str(exc)
+    err = getattr(exc, "errno", None)
+    try:
+        os.close(os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK))
+    except OSError as node:
+        if node.errno in (_errno.ENOENT, _errno.EACCES, _errno.EPERM, _errno.ENXIO,
+                          _errno.ENODEV):
+            return DeviceOpenError(path, node.errno, describe_open_error(path, node.errno),
+                                   uri)
+    if "exclusively lock" in text or err in (_errno.EBUSY, _errno.EAGAIN):
+        err = _errno.EBUSY
+    elif isinstance(exc, ValueError) or "baud" in text.lower() or err == _errno.EINVAL:
+        err = _errno.EINVAL
+    return DeviceOpenError(path, err, describe_open_error(path, err, text, baud=baud), uri)
+
+
+def _set_exclusive(ser: object) -> None:
+    # TIOCEXCL: later open()s of the tty fail with EBUSY even for programs that take no
+    # lock (screen, cat); root is exempt, hence the flock as well.
+    import fcntl
+    import termios
+
+    with contextlib.suppress(OSError, ValueError, AttributeError):
+        fcntl.ioctl(ser.fileno(), termios.TIOCEXCL)  # type: ignore[attr-defined]
+
+
+def _close_serial(ser: object) -> None:
+    import fcntl
+    import termios
+
+    with contextlib.suppress(OSError, ValueError, AttributeError):
+        fcntl.ioctl(ser.fileno(), termios.TIOCNXCL)  # type: ignore[attr-defined]
+    ser.close()  # type: ignore[attr-defined]
 
 
 def _open_path(uri: TransportUri, registry: Mapping[str, TransportFactory]) -> Transport:
