@@ -40,6 +40,8 @@ from drivers.mikrokopter.device import FlightCtrl, FlightCtrlConfig
 from drivers.mocap.natnet_client import NatNetClient
 from drivers.mocap.uri import open_pose_source
 from estimator.ukf import Ukf
+from groundstation.gcs import GcsOptions, gcs_options, start_gcs
+from groundstation.gcs import summary_lines as mavlink_summary_lines
 from groundstation.loop import FlightLoop, LoopOptions, LoopResult
 from groundstation.record import RECORD_DTYPE, RecordWriter
 from groundstation.session_config import EmulatedBackend, HardwareBackend, SessionConfig
@@ -135,7 +137,8 @@ class EmulatorProcess:
 def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
                     events: Any, events_path: str, echo_events: bool, stop: Any,
                     dashboard_mode: str, rrd_path: str, params: VehicleParams,
-                    mavlink_uri: str = "", status: Any = None, commands: Any = None) -> None:
+                    mavlink: GcsOptions | None = None, status: Any = None,
+                    commands: Any = None) -> None:
     """The telemetry process: ring -> flight record (+ rerun dashboard), event queue -> events
     file (and stderr). Runs at a lower priority; the loop never waits for it."""
     with contextlib.suppress(OSError):
@@ -151,7 +154,8 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
         dash = Dashboard(dashboard_mode, rrd_path, metadata=metadata, params=params)
         if dash.viewer_url:
             print(f"dashboard: {dash.viewer_url}", file=sys.stderr, flush=True)
-    bridge = _start_mavlink(mavlink_uri, params, status, commands) if mavlink_uri else None
+    gcs = None if mavlink is None else start_gcs(mavlink, params, status, commands,
+                                                 events_path, echo_events)
     with open(events_path, "a", encoding="utf-8") as ev:
         parent = os.getppid()
         while True:
@@ -170,13 +174,13 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
                 ev.write(text + "\n")
                 if dash is not None:
                     dash.log_event_line(text)
-                if mavlink_uri:
+                if gcs is not None:
                     pending_events.append(text)
                 if echo_events:
                     print(text, file=sys.stderr, flush=True)
             ev.flush()
-            if bridge is not None and len(rows):
-                bridge.publish(_vehicle_telemetry(rows[-1], status, pending_events))
+            if gcs is not None and len(rows):
+                gcs.publish(rows[-1], pending_events)
                 pending_events = []
             if finished:
                 rest = ring.drain()
@@ -189,88 +193,9 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
     writer.close()
     if dash is not None:
         dash.close()
-    if bridge is not None:
-        bridge.close()
+    if gcs is not None:  # the final state announced, then the link's counters written
+        gcs.close(pending_events)
     ring.close()
-
-
-# -- MAVLink: the bridge lives in the telemetry process; commands go back to the loop --------
-#: shared status block written by the loop: flight state, preflight ok, battery voltage (V)
-STATUS_STATE, STATUS_PREFLIGHT, STATUS_BATTERY = 0, 1, 2
-
-
-class _LoopCommandSink:
-    """Decides MAVLink commands on the loop's latest state (``groundstation.operator.decide``)
-    and forwards the accepted ones to the loop as operator requests."""
-
-    def __init__(self, status: Any, commands: Any, max_tilt_rad: float) -> None:
-        self.status, self.commands, self.max_tilt_rad = status, commands, max_tilt_rad
-
-    def submit(self, cmd: Any) -> Any:
-        from groundstation import operator as op
-
-        phase = op.FlightPhase(int(self.status[STATUS_STATE]))
-        result = op.decide(cmd, phase, preflight_ok=bool(self.status[STATUS_PREFLIGHT]),
-                           max_tilt_rad=self.max_tilt_rad)
-        request = {op.Arm: "arm", op.Disarm: "disarm", op.Land: "land",
-                   op.EmergencyStop: "cut"}.get(type(cmd))
-        if result is op.CommandResult.ACCEPTED:
-            if request is None:  # the session flies its mission file: no takeoff/setpoints
-                return op.CommandResult.UNSUPPORTED
-            with contextlib.suppress(queue.Full):
-                self.commands.put_nowait(request)
-        return result
-
-
-def _start_mavlink(uri: str, params: VehicleParams, status: Any, commands: Any) -> Any:
-    from drivers.mavlink.bridge import MavlinkBridge, MavlinkConfig
-    from groundstation.operator import operator_params
-
-    c = params.controller
-    bridge = MavlinkBridge.from_config(
-        MavlinkConfig(uri=uri), _LoopCommandSink(status, commands, params.tilt.max_tilt_rad),
-        params=operator_params(kp_pos=c.kp_pos, kv_pos=c.kv_pos, ki_pos=c.ki_pos,
-                               kr_att=c.kr_att, kw_att=c.kw_att,
-                               max_tilt_deg=params.tilt.max_tilt_deg,
-                               max_tilt_rate_deg_s=params.tilt.max_rate_deg_s))
-    bridge.start()
-    return bridge
-
-
-def _vehicle_telemetry(row: Any, status: Any, events: list[str]) -> Any:
-    from groundstation import operator as op
-
-    phase = op.FlightPhase(int(status[STATUS_STATE]))
-
-    def vec(v: Any) -> tuple[float, ...]:
-        return tuple(float(x) for x in v)
-
-    return op.VehicleTelemetry(
-        t_s=float(row["t_s"]), phase=phase,
-        armed=phase in (op.FlightPhase.ARMED, op.FlightPhase.TAKEOFF, op.FlightPhase.MISSION,
-                        op.FlightPhase.LANDING),
-        pos_w_m=vec(row["est_pos_w_m"]), vel_w_m_s=vec(row["vel_w_m_s"]),  # type: ignore[arg-type]
-        q_wb=vec(row["est_q_wb"]), omega_b_rad_s=vec(row["omega_b_rad_s"]),  # type: ignore[arg-type]
-        rotor_speeds_hz=vec(row["spin_hz"]), tilt_rad=float(row["alpha_rad"]),  # type: ignore[arg-type]
-        battery_v=float(status[STATUS_BATTERY]),
-        health=op.SensorHealth(preflight_ok=bool(status[STATUS_PREFLIGHT])),
-        events=tuple(_status_event(e, float(row["t_s"])) for e in events),
-    )
-
-
-def _status_event(line: str, t_default: float) -> Any:
-    """``"T.TTT s TEXT"`` (or ``"FAULT T.TTT s: TEXT"``) -> a StatusEvent."""
-    from groundstation import operator as op
-
-    text = line.removeprefix("FAULT ")
-    head, _, rest = text.partition(" s ")
-    try:
-        t_s = float(head)
-    except ValueError:
-        t_s, rest = t_default, text
-    bad = line.startswith("FAULT") or "failsafe" in line or "lost" in line
-    return op.StatusEvent(t_s, rest.lstrip(": ") if rest else text,
-                          op.Severity.WARNING if bad else op.Severity.INFO)
 
 
 class FlightSession:
@@ -281,7 +206,8 @@ class FlightSession:
                  echo_events: bool = True, corrupt_prob: float = 0.0,
                  realtime_settings: bool = False,
                  scripted_requests: tuple[tuple[float, str], ...] = (),
-                 dashboard: str | None = None, mavlink: str | None = None) -> None:
+                 dashboard: str | None = None, mavlink: str | None = None,
+                 mavlink_key_file: str | None = None) -> None:
         self.cfg = cfg
         self.params = params
         self.mission = mission
@@ -293,6 +219,9 @@ class FlightSession:
         self.scripted_requests = scripted_requests
         self.dashboard = dashboard or cfg.telemetry.rerun
         self.mavlink_uri = mavlink if mavlink is not None else cfg.telemetry.mavlink
+        # the signing key is resolved here, before anything opens (a bad key file: exit 2)
+        self.mavlink: GcsOptions | None = gcs_options(
+            self.mavlink_uri, cfg.telemetry, record_path, cli_key_file=mavlink_key_file)
         self._tmp = None if session_dir else tempfile.TemporaryDirectory(prefix="fasthex-")
         self.session_dir = session_dir or Path(self._tmp.name)  # type: ignore[union-attr]
         self.emulator: EmulatorProcess | None = None
@@ -345,7 +274,7 @@ class FlightSession:
                                     str(self.events_path), self.echo_events, stop,
                                     self._dashboard_mode(),
                                     str(self.record_path.with_suffix(".rrd")), self.params,
-                                    self.mavlink_uri, status, commands))
+                                    self.mavlink, status, commands))
             tel.start()
 
             fc = FlightCtrl.open(fc_uri, FlightCtrlConfig(imu_rate_hz=backend.imu_rate_hz))
@@ -404,6 +333,7 @@ class FlightSession:
 
                     restore_default_settings()
             result.telemetry_dropped = ring.dropped
+            status[0] = float(int(loop.sm.state))  # the final state, for the MAVLink GCS
             event_sink(f"session ended: {result.end_reason}")
             return SessionOutcome(result, self.record_path, self.events_path,
                                   loop.preflight_report, settings,
@@ -487,6 +417,7 @@ def summary_lines(outcome: SessionOutcome) -> list[str]:
              f"UKF fusion horizon {1e3 * r.estimator_fusion_delay_s:.1f} ms behind the IMU; "
              f"telemetry rows dropped {r.telemetry_dropped}"]
     lines += [f"  fault {f}" for f in r.faults]
+    lines += mavlink_summary_lines(outcome.record_path)
     lines.append(f"flight record: {outcome.record_path}")
     lines.append(f"events: {outcome.events_path}")
     return lines

@@ -122,6 +122,12 @@ class TelemetryConfig:
     rerun: Literal["off", "save", "serve", "spawn", "auto"] = spec(
         "auto", doc="auto: spawn a viewer when a display exists, else save a .rrd")
     mavlink: str = spec("", doc="MAVLink endpoint URI, e.g. udpout:127.0.0.1:14550; empty: off")
+    # MAVLink signing: a key FILE (never the key itself); see groundstation.gcs for precedence
+    mavlink_key_file: str | None = spec(None, doc="file holding the MAVLink signing key (64 hex "
+                                        "digits or a passphrase); --mavlink-key-file and "
+                                        "$FASTHEX_MAVLINK_KEY are the other sources")
+    mavlink_allow_unsigned: bool = spec(False, doc="without a key, accept flight-changing "
+                                        "MAVLink commands anyway (a warning says so)")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -18,7 +18,8 @@ Why we verify ourselves instead of pymavlink's ``setup_signing`` (2.4.50):
 * it records a new stream's timestamp before checking the signature, so one forged frame with a
   far-future timestamp makes every genuine frame of that stream look replayed; here the MAC is
   checked first and only a valid frame moves the stream's timestamp;
-* it counts wrong keys and replays together; here they are counted apart.
+* it counts wrong keys and replays together; here they are counted apart, and a frame more
+  than a minute behind our clock is counted as stale.
 """
 
 from __future__ import annotations
@@ -46,7 +47,9 @@ MAVLINK2_MAGIC = 0xFD
 IFLAG_SIGNED = 0x01
 #: Seconds between the Unix epoch and the MAVLink signing epoch (2015-01-01 00:00 UTC).
 SIGNING_EPOCH_UNIX_S = 1_420_070_400
-#: A new stream may start at most this far (10 us units: one minute) behind our timestamp.
+#: A frame may be at most this far (10 us units: one minute) behind our timestamp; older ones
+#: are stale (MAVLink's rule for new streams, applied to every frame: a captured frame cannot
+#: be played back a minute later on a stream that has been quiet since).
 NEW_STREAM_WINDOW = 6_000_000
 
 
@@ -114,7 +117,8 @@ class Verdict(enum.Enum):
     GOOD = "good"  # signed with our key, fresh timestamp
     UNSIGNED = "unsigned"  # MAVLink1, or MAVLink2 without the signed flag
     BAD_SIGNATURE = "bad_signature"  # wrong key, or corrupted
-    REPLAY = "replay"  # right key, timestamp not newer than the stream's last (or too old)
+    REPLAY = "replay"  # right key, timestamp not newer than the stream's last
+    STALE = "stale"  # right key, timestamp more than the window behind our clock
 
 
 @dataclass(frozen=True, slots=True)
@@ -124,10 +128,11 @@ class SigningStats:
     unsigned_rejected: int
     bad_signature: int
     replayed: int
+    stale: int = 0
 
     @property
     def rejected(self) -> int:
-        return self.unsigned_rejected + self.bad_signature + self.replayed
+        return self.unsigned_rejected + self.bad_signature + self.replayed + self.stale
 
 
 _TS = struct.Struct("<IH")
@@ -159,6 +164,7 @@ class SignatureVerifier:
         self.unsigned_rejected = 0
         self.bad_signature = 0
         self.replayed = 0
+        self.stale = 0
 
     @property
     def newest_timestamp(self) -> int:
@@ -167,7 +173,7 @@ class SignatureVerifier:
 
     def stats(self) -> SigningStats:
         return SigningStats(self.good, self.unsigned_allowed, self.unsigned_rejected,
-                            self.bad_signature, self.replayed)
+                            self.bad_signature, self.replayed, self.stale)
 
     def classify(self, frame: bytes) -> Verdict:
         """The verdict on one complete frame (no counters, no state change)."""
@@ -187,6 +193,8 @@ class SignatureVerifier:
             self.unsigned_rejected += 1
         elif verdict is Verdict.BAD_SIGNATURE:
             self.bad_signature += 1
+        elif verdict is Verdict.STALE:
+            self.stale += 1
         else:
             self.replayed += 1
         return False
@@ -203,13 +211,11 @@ class SignatureVerifier:
         timestamp = lo | (hi << 32)
         stream = (link_id, frame[5], frame[6])
         last = self._streams.get(stream)
-        if last is not None:
-            if timestamp <= last:
-                return Verdict.REPLAY
-        else:
-            now = max(self._newest, signing_timestamp_now(self._unix_time()))
-            if timestamp + NEW_STREAM_WINDOW < now:
-                return Verdict.REPLAY
+        if last is not None and timestamp <= last:
+            return Verdict.REPLAY
+        now = max(self._newest, signing_timestamp_now(self._unix_time()))
+        if timestamp + NEW_STREAM_WINDOW < now:
+            return Verdict.STALE
         if commit:
             self._streams[stream] = timestamp
             self._newest = max(self._newest, timestamp)

@@ -40,6 +40,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mavlink", default=None, metavar="URI",
                         help="MAVLink endpoint for a GCS, e.g. udpout:127.0.0.1:14550 "
                         "(default: the session's; '' to switch off)")
+    parser.add_argument("--mavlink-key-file", default=None, metavar="PATH",
+                        help="MAVLink signing key file (64 hex digits or a passphrase); "
+                        "overrides the session's telemetry.mavlink_key_file and "
+                        "$FASTHEX_MAVLINK_KEY. Without a key, flight-changing commands are "
+                        "refused")
     parser.add_argument("--corrupt-prob", type=float, default=0.0,
                         help="emulated backend: byte corruption on the Flight-Ctrl link")
 
@@ -74,7 +79,8 @@ def run(args: argparse.Namespace) -> int:
                             echo_events=not args.quiet and not args.json,
                             corrupt_prob=args.corrupt_prob,
                             realtime_settings=args.realtime_settings,
-                            dashboard=args.rerun, mavlink=args.mavlink)
+                            dashboard=args.rerun, mavlink=args.mavlink,
+                            mavlink_key_file=args.mavlink_key_file)
     stop_status = threading.Event()
 
     def on_sigint(signum: int, frame: Any) -> None:
@@ -130,6 +136,9 @@ def flight_summary(outcome: Any, params: Any, session: str) -> dict[str, Any]:
         "record": str(outcome.record_path),
         "preflight": [{"check": n, "pass": ok, "value": v} for n, ok, v in outcome.preflight],
     }
+    from groundstation.gcs import summary_fields
+
+    out.update(summary_fields(outcome.record_path))  # mavlink_*: the link's counters, if on
     rec = read_record(outcome.record_path)
     out["state_source"] = rec.metadata.get("state", "ground-station estimate")
     if len(rec.rows):

@@ -1,72 +1,260 @@
-"""A lockstep flight seen and commanded by a second MAVLink endpoint (pymavlink), through the
-bridge in the session's telemetry process."""
+"""Lockstep ``fasthex fly`` sessions commanded over MAVLink: secure by default, end to end.
+
+Each test runs the real CLI in a child process (``--json`` gives the summary and the link's
+counters) with a GCS peer on loopback: MAVProxy signed with the session's key, or a pymavlink
+endpoint that plays the lab GCS and an attacker sending unsigned, wrongly signed, stale and
+replayed frames. Waiting is on messages and output lines with generous deadlines; nothing is
+timed.
+"""
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
-import socket
+import subprocess
+import sys
 import threading
 from pathlib import Path
 from typing import Any
 
 os.environ["MAVLINK20"] = "1"  # before mavutil is imported
-from flight_support import SHORT_MISSION, short_session
+from mavlink_support import TIMEOUT_S, MavProxy, free_udp_port, start_fly, write_session
 from pymavlink import mavutil
+from pymavlink.dialects.v20 import common as mavlink2
 
+from drivers.mavlink.signing import signing_timestamp_now
 from groundstation.flight import FlightState
-from groundstation.session import FlightSession
+
+M = mavlink2
+PASSPHRASE = "labpass"
+KEY = hashlib.sha256(PASSPHRASE.encode()).digest()
+WRONG_KEY = hashlib.sha256(b"guess").digest()
+FLIGHT_TIMEOUT_S = 600.0
+N_ATTACK = 10
 
 
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+def _env_without_key() -> dict[str, str]:
+    env = dict(os.environ)
+    env.pop("FASTHEX_MAVLINK_KEY", None)
+    return env
 
 
-def test_that_a_gcs_sees_the_flight_and_its_land_command_is_acknowledged(tmp_path: Path
-                                                                          ) -> None:
-    port = _free_udp_port()
-    gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=255)
-    seen: dict[str, Any] = {"modes": [], "attitudes": 0, "acks": [], "texts": []}
-    done = threading.Event()
+def _finish(proc: subprocess.Popen[str]) -> dict[str, Any]:
+    out, err = proc.communicate(timeout=FLIGHT_TIMEOUT_S)
+    assert out.strip(), f"no JSON summary (exit {proc.returncode}):\n{err[-3000:]}"
+    summary: dict[str, Any] = json.loads(out)
+    return summary
 
-    def gcs_main() -> None:
-        sent_land = False
-        while not done.is_set():
-            msg = gcs.recv_match(blocking=True, timeout=0.2)
-            if msg is None:
+
+def _frame(key: bytes | None, msg: Any, *, sysid: int, link_id: int = 7,
+           timestamp: int | None = None) -> bytes:
+    """One frame from a plain pymavlink encoder, signed with ``key`` if given."""
+    out: list[bytes] = []
+
+    class _W:
+        def write(self, b: bytes) -> None:
+            out.append(bytes(b))
+
+    mav = M.MAVLink(_W(), srcSystem=sysid, srcComponent=190)
+    if key is not None:
+        mav.signing.secret_key = key
+        mav.signing.sign_outgoing = True
+        mav.signing.link_id = link_id
+        mav.signing.timestamp = signing_timestamp_now() if timestamp is None else timestamp
+    mav.send(msg)
+    return out[0]
+
+
+def _land() -> Any:
+    return M.MAVLink_command_long_message(1, 1, M.MAV_CMD_NAV_LAND, 0, 0, 0, 0, 0, 0, 0, 0)
+
+
+class Gcs:
+    """A pymavlink GCS listening on a free port; a thread keeps every message it receives."""
+
+    def __init__(self, key: bytes | None = None) -> None:
+        self.port = free_udp_port()
+        self.conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{self.port}",
+                                               source_system=255, source_component=190)
+        if key is not None:
+            self.conn.setup_signing(key, sign_outgoing=True)
+        self.lock = threading.Condition()
+        self.heartbeats: list[Any] = []
+        self.landed: list[int] = []
+        self.acks: list[tuple[int, int]] = []
+        self.texts: list[str] = []
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._done.is_set():
+            msg = self.conn.recv_match(blocking=True, timeout=0.2)
+            if msg is None or msg.get_type() == "BAD_DATA":
                 continue
             kind = msg.get_type()
-            if kind == "HEARTBEAT" and msg.get_srcSystem() == 1:
-                seen["modes"].append(msg.custom_mode)
-                if msg.custom_mode == int(FlightState.MISSION) and not sent_land:
-                    gcs.mav.command_long_send(1, 1, mavutil.mavlink.MAV_CMD_NAV_LAND,
-                                              0, 0, 0, 0, 0, 0, 0, 0)
-                    sent_land = True
-            elif kind == "ATTITUDE":
-                seen["attitudes"] += 1
-            elif kind == "COMMAND_ACK":
-                seen["acks"].append((msg.command, msg.result))
-            elif kind == "STATUSTEXT":
-                seen["texts"].append(msg.text)
+            with self.lock:
+                if kind == "HEARTBEAT" and msg.get_srcSystem() == 1:
+                    self.heartbeats.append(msg)
+                elif kind == "EXTENDED_SYS_STATE":
+                    self.landed.append(msg.landed_state)
+                elif kind == "COMMAND_ACK":
+                    self.acks.append((msg.command, msg.result))
+                elif kind == "STATUSTEXT":
+                    self.texts.append(msg.text)
+                self.lock.notify_all()
 
-    thread = threading.Thread(target=gcs_main, daemon=True)
-    thread.start()
+    def wait(self, what: str, predicate: Any) -> None:
+        with self.lock:
+            assert self.lock.wait_for(predicate, TIMEOUT_S * 3), (
+                what, [h.custom_mode for h in self.heartbeats[-5:]], self.acks, self.texts[-5:])
+
+    def wait_mission(self) -> None:
+        self.wait("MISSION", lambda: any(h.custom_mode == FlightState.MISSION
+                                         for h in self.heartbeats))
+
+    def wait_ack(self, command: int) -> int:
+        self.wait(f"ACK {command}", lambda: any(c == command for c, _ in self.acks))
+        with self.lock:
+            i = next(i for i, (c, _) in enumerate(self.acks) if c == command)
+            return self.acks.pop(i)[1]
+
+    def send_raw(self, frame: bytes) -> None:
+        with self.lock:  # the vehicle's address, learnt from its telemetry
+            vehicle = next(iter(self.conn.clients))
+        self.conn.port.sendto(frame, vehicle)
+
+    def close(self) -> None:
+        self._done.set()
+        self._thread.join(timeout=5)
+        self.conn.close()
+
+
+def test_that_mavproxy_signed_with_the_sessions_key_lands_the_vehicle(tmp_path: Path) -> None:
+    # Fixture: the session names a key file holding the lab passphrase; a 2 min hover
+    (tmp_path / "lab.key").write_text(PASSPHRASE + "\n")
+    (tmp_path / "lab.key").chmod(0o600)
+    session = write_session(tmp_path, hover_s=120.0, key_file="lab.key")
+    port = free_udp_port()
+    mp = MavProxy(port, tmp_path, "--mav20")
+    proc = start_fly(session, tmp_path / "f.fhr", port, env=_env_without_key())
     try:
-        cfg, params, mission = short_session(tmp_path, mission=SHORT_MISSION.replace(
-            "duration_s: 4.0", "duration_s: 60.0"))
-        session = FlightSession(cfg, params, mission, record_path=tmp_path / "f.fhr",
-                                echo_events=False, mavlink=f"udpout:127.0.0.1:{port}")
-        out = session.run()
+        mp.expect(r"Detected vehicle 1:1")
+        mp.type(f"signing key {PASSPHRASE}")
+        # Test: once in the mission, the operator types a land command
+        mp.expect(r"AP: TAKEOFF -> MISSION")
+        mp.type("long MAV_CMD_NAV_LAND")
+        mp.expect(r"COMMAND_ACK: NAV_LAND: ACCEPTED")
+        mp.expect(r"AP: LANDING -> DISARMED")
+        summary = _finish(proc)
     finally:
-        done.set()
-        thread.join(timeout=5)
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        mp.close()
+    # Assert: landed by the operator, every MAVProxy command verified, nothing rejected
+    reasons = [t.split(": ", 1)[1] for t in summary["transitions"]]
+    assert "operator: land" in reasons
+    assert summary["transitions"][-1].split(": ")[0].endswith("LANDING -> DISARMED")
+    assert summary["mavlink_signed"] is True
+    assert summary["mavlink_signed_good"] >= 1
+    assert summary["mavlink_rejected_bad_signature"] == 0
+    assert summary["mavlink_rejected_replay"] == 0
+    assert summary["mavlink_commands"].get("ACCEPTED", 0) >= 1
+
+
+def test_that_unsigned_wrong_key_stale_and_replayed_commands_are_all_rejected_and_counted(
+        tmp_path: Path) -> None:
+    # Fixture: the key from the environment this time; the lab GCS signs with it
+    session = write_session(tmp_path, hover_s=120.0)
+    gcs = Gcs(key=KEY)
+    env = {**_env_without_key(), "FASTHEX_MAVLINK_KEY": PASSPHRASE}
+    proc = start_fly(session, tmp_path / "f.fhr", gcs.port, env=env)
+    try:
+        gcs.wait_mission()
+        # Test: the attacker's frames, all sent while the vehicle flies its mission
+        for k in range(N_ATTACK):
+            gcs.send_raw(_frame(None, _land(), sysid=66))
+            gcs.send_raw(_frame(WRONG_KEY, _land(), sysid=66, link_id=k))
+            gcs.send_raw(_frame(KEY, _land(), sysid=67, link_id=k,
+                                timestamp=signing_timestamp_now() - 120 * 100_000 + k))
+        # a recorded, correctly signed (harmless) command and its byte-exact replays
+        recorded = _frame(KEY, M.MAVLink_command_long_message(
+            1, 1, M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, 1.0), sysid=68, link_id=3)
+        gcs.send_raw(recorded)
+        for _ in range(N_ATTACK):
+            gcs.send_raw(recorded)
+        # a signed request from the lab GCS: its ACK proves all of the above was handled
+        gcs.conn.mav.command_long_send(1, 1, M.MAV_CMD_REQUEST_MESSAGE, 0,
+                                       M.MAVLINK_MSG_ID_HEARTBEAT, 0, 0, 0, 0, 0, 0)
+        assert gcs.wait_ack(M.MAV_CMD_REQUEST_MESSAGE) == M.MAV_RESULT_ACCEPTED
+        with gcs.lock:
+            assert gcs.heartbeats[-1].custom_mode == FlightState.MISSION  # still flying
+        # then the lab's own land, signed
+        gcs.conn.mav.command_long_send(1, 1, M.MAV_CMD_NAV_LAND, 0, 0, 0, 0, 0, 0, 0, 0)
+        assert gcs.wait_ack(M.MAV_CMD_NAV_LAND) == M.MAV_RESULT_ACCEPTED
+        summary = _finish(proc)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
         gcs.close()
-    reasons = [t.reason for t in out.result.transitions]
-    # the 60 s hover was cut short by the GCS's land command, acknowledged as accepted
-    assert "operator: land" in reasons, (seen["acks"], seen["modes"][-5:], seen["texts"][-5:])
-    assert (mavutil.mavlink.MAV_CMD_NAV_LAND, mavutil.mavlink.MAV_RESULT_ACCEPTED) in seen["acks"]
-    assert int(FlightState.MISSION) in seen["modes"]
-    assert seen["attitudes"] > 10
-    assert any("ARMED" in t for t in seen["texts"])
-    assert out.result.transitions[-1].to_state is FlightState.DISARMED
+    # Assert: 100 % of each kind rejected, counted apart in fly --json; only the lab landed
+    assert summary["mavlink_signed"] is True
+    assert summary["mavlink_rejected_unsigned"] == N_ATTACK
+    assert summary["mavlink_rejected_bad_signature"] == N_ATTACK
+    assert summary["mavlink_rejected_stale"] == N_ATTACK
+    assert summary["mavlink_rejected_replay"] == N_ATTACK
+    reasons = [t.split(": ", 1)[1] for t in summary["transitions"]]
+    assert reasons.count("operator: land") == 1
+    assert summary["transitions"][-1].split(": ")[0].endswith("LANDING -> DISARMED")
+
+
+def test_that_without_a_key_a_land_is_refused_the_flight_completes_and_ends_on_the_ground(
+        tmp_path: Path) -> None:
+    # Fixture: no key anywhere; the shared 11 s mission
+    session = write_session(tmp_path, hover_s=4.0)
+    gcs = Gcs()
+    proc = start_fly(session, tmp_path / "f.fhr", gcs.port, env=_env_without_key())
+    try:
+        gcs.wait_mission()
+        # Test
+        gcs.conn.mav.command_long_send(1, 1, M.MAV_CMD_NAV_LAND, 0, 0, 0, 0, 0, 0, 0, 0)
+        result = gcs.wait_ack(M.MAV_CMD_NAV_LAND)
+        summary = _finish(proc)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        gcs.close()
+    # Assert: refused, counted, the mission flown to its end
+    assert result == M.MAV_RESULT_DENIED
+    assert summary["end_reason"] in ("mission complete", "touchdown")
+    assert "operator: land" not in " ".join(summary["transitions"])
+    assert summary["mavlink_signed"] is False
+    assert summary["mavlink_refused_unsigned"] == 1
+    # after the session: the GCS's last word from the vehicle is disarmed and on the ground,
+    # repeated (the final state is announced for more than a second before the link closes)
+    final = [h for h in gcs.heartbeats if h.custom_mode == FlightState.DISARMED]
+    assert len(final) >= 2
+    assert not gcs.heartbeats[-1].base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED
+    assert gcs.heartbeats[-1].custom_mode == FlightState.DISARMED
+    assert gcs.landed[-3:] == [M.MAV_LANDED_STATE_ON_GROUND] * 3
+    assert M.MAV_LANDED_STATE_IN_AIR in gcs.landed  # the landed state followed the flight
+    assert any("session over: DISARMED" in t for t in gcs.texts)
+
+
+def test_that_an_unreadable_key_file_is_one_line_and_exit_2_before_anything_opens(
+        tmp_path: Path) -> None:
+    session = write_session(tmp_path, hover_s=4.0)
+    proc = subprocess.run(
+        [sys.executable, "-m", "groundstation", "fly", str(session), "--mavlink",
+         "udpout:127.0.0.1:9", "--mavlink-key-file", str(tmp_path / "missing.key"),
+         "--record", str(tmp_path / "f.fhr")],
+        capture_output=True, text=True, timeout=120, env=_env_without_key())
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in proc.stderr
+    assert "missing.key" in lines[0] and "cannot read signing key" in lines[0]
+    assert not (tmp_path / "f.fhr").exists()

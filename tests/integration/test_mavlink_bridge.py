@@ -30,9 +30,10 @@ import itertools
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink2
 
-from drivers.mavlink import MavlinkBridge, MavlinkConfig
+from drivers.mavlink import MavlinkConfig
 from drivers.mavlink.frames import q_from_euler
 from drivers.mavlink.signing import signing_timestamp_now
+from groundstation.mavlink_bridge import MavlinkBridge
 from groundstation.operator import (
     Arm,
     CommandResult,
@@ -80,7 +81,8 @@ class Rig:
     """A bridge (vehicle side, udpout) and a mavutil GCS (udpin) on loopback, in lockstep."""
 
     def __init__(self, key: bytes | None = None, peer_key: bytes | None = None,
-                 phase: FlightPhase = FlightPhase.PREFLIGHT) -> None:
+                 phase: FlightPhase = FlightPhase.PREFLIGHT, allow_unsigned: bool = True
+                 ) -> None:
         self.gcs = mavutil.mavlink_connection("udpin:127.0.0.1:0", source_system=255,
                                               source_component=190)
         if peer_key is not None:
@@ -91,7 +93,10 @@ class Rig:
         self.sink = RuleBasedCommandSink(phase, on_change=lambda ph: self.bridge.publish(
             hover(self.t, ph)))
         cfg = MavlinkConfig(uri=f"udpout:127.0.0.1:{port}", signing=key is not None, **RATES)
-        self.bridge = MavlinkBridge(cfg, self.sink, params=PARAMS, key=key)
+        # unsigned commands allowed explicitly: these tests are about what commands do (the
+        # secure default, refusing them, has its own tests below)
+        self.bridge = MavlinkBridge(cfg, self.sink, params=PARAMS, key=key,
+                                    allow_unsigned_commands=allow_unsigned)
         self.bridge.publish(hover(0.0, phase))
         self.bridge.step(0.0)
         # the GCS learns the vehicle's address from its first datagram
@@ -213,7 +218,7 @@ def test_that_a_scripted_hover_arrives_at_the_configured_rates_with_correct_valu
     while collect() < sent:
         assert rig._pull(TIMEOUT_S), f"{sent - collect()} messages never arrived"
     # Assert: counts over [0, 2 s) at each configured rate
-    expected = {"HEARTBEAT": 1.0, "SYS_STATUS": 2.0, "ATTITUDE": 50.0,
+    expected = {"HEARTBEAT": 1.0, "SYS_STATUS": 2.0, "EXTENDED_SYS_STATE": 1.0, "ATTITUDE": 50.0,
                 "ATTITUDE_QUATERNION": 25.0, "LOCAL_POSITION_NED": 20.0, "ODOMETRY": 10.0,
                 "ACTUATOR_OUTPUT_STATUS": 5.0}
     for kind, hz in expected.items():
@@ -426,7 +431,7 @@ def test_that_the_service_thread_streams_on_the_wall_clock_while_another_thread_
     probe.close()  # a free port number for the vehicle to bind
     sink = RuleBasedCommandSink()
     bridge = MavlinkBridge(MavlinkConfig(uri=f"udpin:127.0.0.1:{port}", attitude_hz=100.0),
-                           sink)
+                           sink, allow_unsigned_commands=True)
     gcs = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=255)
     stop = threading.Event()
 
@@ -551,5 +556,186 @@ def test_that_arbitrary_commands_and_setpoints_are_answered_and_never_break_the_
         stats = rig.bridge.stats()
         assert not [k for k in stats.ignored if k.startswith("ERROR_")]
         assert sum(stats.command_results.values()) >= 150
+    finally:
+        rig.close()
+
+
+# -- secure by default ------------------------------------------------------------------------
+
+FLIGHT_CHANGING = [
+    (M.MAV_CMD_COMPONENT_ARM_DISARM, (1.0,)),  # arm
+    (M.MAV_CMD_COMPONENT_ARM_DISARM, (0.0,)),  # disarm
+    (M.MAV_CMD_COMPONENT_ARM_DISARM, (0.0, 21196.0)),  # force disarm: emergency stop
+    (M.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, 0, 0, 0, 1.0)),
+    (M.MAV_CMD_NAV_LAND, ()),
+    (M.MAV_CMD_DO_FLIGHTTERMINATION, (1.0,)),
+    (M.MAV_CMD_USER_1, (20.0,)),  # tilt
+]
+
+
+def test_that_without_a_key_flight_changing_commands_are_refused_and_telemetry_flows() -> None:
+    # Fixture: the default bridge, no key, nothing allowed; the vehicle flies its mission
+    rig = Rig(phase=FlightPhase.MISSION, allow_unsigned=False)
+    try:
+        # Test: every flight-changing command, a parameter write and two setpoints
+        results = [rig.command(cmd, *p) for cmd, p in FLIGHT_CHANGING]
+        rig.gcs.mav.param_set_send(1, 1, b"KP_POS_XY", 12.0, M.MAV_PARAM_TYPE_REAL32)
+        value = rig.recv("PARAM_VALUE")
+        rig.gcs.mav.set_position_target_local_ned_send(
+            0, 1, 1, M.MAV_FRAME_LOCAL_NED, 0b1001_1111_1000, 0.5, 0.0, -1.0, 0, 0, 0, 0, 0, 0,
+            0.0, 0)
+        rig.gcs.mav.set_attitude_target_send(0, 1, 1, 0, [1.0, 0.0, 0.0, 0.0], 0, 0, 0, 0.5)
+        rig.sync()
+        # Assert: all denied, nothing reached the flight, every refusal counted
+        assert results == [CommandResult.DENIED] * len(FLIGHT_CHANGING)
+        assert rig.sink.submissions == []
+        assert value.param_value == pytest.approx(PARAMS[0].value)  # unchanged
+        stats = rig.bridge.stats()
+        assert stats.refused_unsigned == len(FLIGHT_CHANGING) + 1 + 2
+        assert stats.setpoint_results == {"DENIED": 2}
+        # telemetry and link services still work: the sync above was an accepted
+        # REQUEST_MESSAGE, and the stream goes on
+        assert stats.command_results["ACCEPTED"] >= 1
+        assert rig.recv("ATTITUDE").roll == pytest.approx(ROLL, abs=1e-6)
+        assert rig.recv("HEARTBEAT").custom_mode == FlightPhase.MISSION
+    finally:
+        rig.close()
+
+
+def test_that_a_stale_signed_frame_is_rejected_and_counted_apart_from_replays() -> None:
+    rig = Rig(key=KEY, peer_key=KEY)
+    try:
+        two_minutes_ago = signing_timestamp_now() - 120 * 100_000
+        for k in range(5):
+            rig.send_raw(_frame(KEY, _arm_msg(), timestamp=two_minutes_ago + k, sysid=250))
+        rig.sync()
+        assert rig.sink.submissions == []
+        stats = rig.bridge.stats().signing
+        assert stats is not None
+        assert (stats.stale, stats.replayed, stats.bad_signature) == (5, 0, 0)
+    finally:
+        rig.close()
+
+
+def test_that_out_of_range_values_are_refused_and_counted_never_delivered() -> None:
+    R = CommandResult
+    rig = Rig(phase=FlightPhase.MISSION)
+    inf, nan = math.inf, math.nan
+    try:
+        # Test: commands, setpoints, parameters and poses with unphysical values
+        got = [rig.command(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 100.0),  # 100 m
+               rig.command(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, nan),
+               rig.command(M.MAV_CMD_USER_1, 36.0),  # beyond the 35 deg mechanism
+               rig.command(M.MAV_CMD_USER_1, -1.0),
+               rig.command(M.MAV_CMD_USER_1, inf),
+               rig.command(M.MAV_CMD_COMPONENT_ARM_DISARM, nan)]
+        mask = 0b1001_1111_1000  # position and yaw
+        for target in ((1000.0, 0.0, -1.0, 0.0), (0.0, nan, -1.0, 0.0), (0.0, 0.0, -1.0, inf)):
+            rig.gcs.mav.set_position_target_local_ned_send(
+                0, 1, 1, M.MAV_FRAME_LOCAL_NED, mask, *target[:3], 0, 0, 0, 0, 0, 0,
+                target[3], 0)
+        rig.gcs.mav.set_attitude_target_send(0, 1, 1, 0, [nan, 0.0, 0.0, 0.0], 0, 0, 0, 0.5)
+        rig.gcs.mav.set_attitude_target_send(0, 1, 1, 0, [0.0, 0.0, 0.0, 0.0], 0, 0, 0, 0.5)
+        rig.gcs.mav.param_set_send(1, 1, b"KP_POS_XY", nan, M.MAV_PARAM_TYPE_REAL32)
+        rig.gcs.mav.param_set_send(1, 1, b"TILT_MAX_DEG", 80.0, M.MAV_PARAM_TYPE_REAL32)
+        rig.gcs.mav.vision_position_estimate_send(1, 0.1, 0.2, -0.3, inf, 0.0, 0.0)
+        rig.gcs.mav.vision_position_estimate_send(2, 0.1, 0.2, -0.3, 0.0, nan, 0.0)
+        rig.gcs.mav.att_pos_mocap_send(3, [1.0, 0.0, 0.0, 0.0], 1000.0, 0.0, -1.0)  # 1 km
+        rig.gcs.mav.att_pos_mocap_send(4, [nan, 0.0, 0.0, 0.0], 0.0, 0.0, -1.0)
+        rig.sync()
+        # Assert: every one refused, counted, none handed on, nothing raised
+        assert got == [R.DENIED] * 6
+        assert rig.sink.submissions == []
+        assert rig.bridge.mocap.latest() is None
+        stats = rig.bridge.stats()
+        assert stats.refused_out_of_range == 6 + 5 + 2 + 4
+        assert stats.setpoint_results == {"DENIED": 5}
+        assert stats.handler_errors == 0
+        assert rig.bridge.param_value("TILT_MAX_DEG") == pytest.approx(35.0)
+        # the vehicle's own range is the limit: 35 deg exactly is fine
+        assert rig.command(M.MAV_CMD_USER_1, 35.0) == R.ACCEPTED
+    finally:
+        rig.close()
+
+
+def test_that_random_and_mutated_bytes_into_the_bridge_never_raise() -> None:
+    # Fixture: a signing and a non-signing bridge fed directly (their input path, no socket)
+    sink = RuleBasedCommandSink(FlightPhase.MISSION)
+    bridges = [MavlinkBridge(MavlinkConfig(uri="udpout:127.0.0.1:9"), sink, params=PARAMS,
+                             allow_unsigned_commands=True),
+               MavlinkBridge(MavlinkConfig(uri="udpout:127.0.0.1:9", signing=True), sink,
+                             params=PARAMS, key=KEY)]
+    valid = [_frame(None, M.MAVLink_vision_position_estimate_message(0, 0.1, 0.2, -0.3, 0, 0, 0)),
+             _frame(KEY, _arm_msg()),
+             _frame(None, M.MAVLink_att_pos_mocap_message(0, [1, 0, 0, 0], 1, 2, -1)),
+             _frame(None, M.MAVLink_param_set_message(1, 1, b"KP_POS_XY", 1.0, 9)),
+             _frame(None, M.MAVLink_set_position_target_local_ned_message(
+                 0, 1, 1, 1, 0b1001_1111_1000, 0.1, 0, -1, 0, 0, 0, 0, 0, 0, 0, 0))]
+
+    @settings(max_examples=400, deadline=None)
+    @given(data=st.one_of(
+        st.binary(max_size=300),
+        st.tuples(st.sampled_from(valid), st.integers(0, 299), st.integers(0, 255),
+                  st.booleans()).map(_mutate)))
+    def feed(data: bytes) -> None:
+        for b in bridges:
+            b.feed(data, 1.0)  # Assert: never raises
+
+    try:
+        feed()
+        for b in bridges:
+            assert b.stats().handler_errors == 0
+    finally:
+        for b in bridges:
+            b.close()
+
+
+def _mutate(args: tuple[bytes, int, int, bool]) -> bytes:
+    """A valid frame with one byte replaced (and, to get past the CRC, the CRC recomputed:
+    then the payload itself carries the mutation into the handlers)."""
+    frame, pos, value, fix_crc = args
+    b = bytearray(frame)
+    b[pos % len(b)] = value
+    if fix_crc and len(b) > 12 and b[0] == 0xFD:
+        from pymavlink.generator.mavcrc import x25crc
+
+        n = b[1]
+        msg_id = b[7] | b[8] << 8 | b[9] << 16
+        entry = M.mavlink_map.get(msg_id)
+        if entry is not None and 10 + n + 2 <= len(b):
+            crc = x25crc(bytes(b[1:10 + n]))
+            crc.accumulate(bytes([entry.crc_extra]))
+            b[10 + n:12 + n] = crc.crc.to_bytes(2, "little")
+    return bytes(b)
+
+
+def test_that_the_final_state_is_announced_with_heartbeats_and_landed_state() -> None:
+    rig = Rig(phase=FlightPhase.LANDING)
+    try:
+        rig.sink.set_phase(FlightPhase.DISARMED)
+        rig.bridge.publish(hover(rig.t, FlightPhase.DISARMED))
+        slept: list[float] = []
+        clock = [100.0]
+
+        def fake_sleep(dt: float) -> None:  # the bridge's wall clock, stepped by hand
+            slept.append(dt)
+            clock[0] += dt
+
+        rig.bridge._clock = lambda: clock[0]
+        rig.bridge.announce_final("session over: DISARMED", 1.5, sleep=fake_sleep)
+        got = rig.drain(0)
+        while rig._pull(1.0):
+            pass
+        got = {k: got.get(k, []) + list(rig.inbox.get(k, [])) for k in
+               ("HEARTBEAT", "EXTENDED_SYS_STATE", "STATUSTEXT")}
+        final_hb = [h for h in got["HEARTBEAT"] if h.custom_mode == FlightPhase.DISARMED]
+        # Assert: >= 1.5 s of 2 Hz announcements, disarmed and on the ground; the text once
+        assert sum(slept) >= 1.5
+        assert len(final_hb) >= 3
+        assert all(not h.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED for h in final_hb)
+        assert got["EXTENDED_SYS_STATE"][-1].landed_state == M.MAV_LANDED_STATE_ON_GROUND
+        assert len([x for x in got["EXTENDED_SYS_STATE"]
+                    if x.landed_state == M.MAV_LANDED_STATE_ON_GROUND]) >= 3
+        assert [t.text for t in got["STATUSTEXT"]].count("session over: DISARMED") == 1
     finally:
         rig.close()

@@ -19,9 +19,10 @@ os.environ["MAVLINK20"] = "1"  # before mavutil is imported
 from pymavlink import mavutil
 
 from controller.missions import Mission
-from drivers.mavlink import MavlinkBridge, MavlinkConfig
+from drivers.mavlink import MavlinkConfig
 from drivers.mavlink.frames import q_to_euler, q_world_to_ned, world_to_ned
 from groundstation.configs import load_disturbances, load_mission, load_vehicle
+from groundstation.mavlink_bridge import MavlinkBridge
 from groundstation.operator import (
     FlightPhase,
     RuleBasedCommandSink,

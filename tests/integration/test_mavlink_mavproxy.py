@@ -2,30 +2,24 @@
 arms and disarms it, with and without signing.
 
 MAVProxy (GPLv3) runs as a separate process, fed commands on stdin as an operator would type
-them; every wait is on a line it prints, with a generous deadline. Skipped only when the
-``mavproxy.py`` script is not installed (the test extra installs it).
+them; every wait is on a line it prints, with a generous deadline. ``mavproxy.py`` is taken
+from the running interpreter's environment (the test extra installs it); a missing one is a
+failure, not a skip.
 """
 
 from __future__ import annotations
 
 import math
 import os
-import queue
-import re
-import shutil
-import signal
-import socket
-import subprocess
-import sys
-import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from mavlink_support import TIMEOUT_S, MavProxy, free_udp_port
 
-from drivers.mavlink import MavlinkBridge, MavlinkConfig, load_signing_key
+from drivers.mavlink import MavlinkConfig, load_signing_key
 from drivers.mavlink.frames import q_from_euler
+from groundstation.mavlink_bridge import MavlinkBridge
 from groundstation.operator import (
     Arm,
     Disarm,
@@ -35,12 +29,6 @@ from groundstation.operator import (
     VehicleTelemetry,
 )
 
-MAVPROXY = shutil.which("mavproxy.py")
-pytestmark = pytest.mark.skipif(
-    MAVPROXY is None,
-    reason="MAVProxy is not installed (pip install --no-deps MAVProxy==1.8.75 for a headless one)")
-
-TIMEOUT_S = 90.0
 ROLL, PITCH = math.radians(5.0), math.radians(-3.0)
 
 
@@ -52,99 +40,27 @@ def _telemetry(phase: FlightPhase) -> VehicleTelemetry:
         health=SensorHealth(preflight_ok=True))
 
 
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-class MavProxy:
-    """A MAVProxy process listening on ``port``; its output lines are collected by a thread."""
-
-    def __init__(self, port: int, state_dir: Path, *extra: str) -> None:
-        assert MAVPROXY is not None
-        env = {**os.environ, "HOME": str(state_dir)}
-        env.pop("MAVLINK20", None)
-        self.proc = subprocess.Popen(
-            [sys.executable, MAVPROXY, f"--master=udpin:127.0.0.1:{port}",
-             f"--state-basedir={state_dir}", "--cmd=set flushlogs True", *extra],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-            bufsize=1, env=env, cwd=state_dir)
-        self.lines: list[str] = []
-        self._q: queue.Queue[str] = queue.Queue()
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self._q.put(line.rstrip("\n"))
-
-    def type(self, command: str) -> None:
-        assert self.proc.stdin is not None
-        self.proc.stdin.write(command + "\n")
-        self.proc.stdin.flush()
-
-    def expect(self, pattern: str) -> re.Match[str]:
-        """The first new output line matching ``pattern`` (a regex)."""
-        rx = re.compile(pattern)
-        deadline = time.monotonic() + TIMEOUT_S
-        while time.monotonic() < deadline:
-            try:
-                line = self._q.get(timeout=0.5)
-            except queue.Empty:
-                if self.proc.poll() is not None:
-                    break
-                continue
-            self.lines.append(line)
-            m = rx.search(line)
-            if m is not None:
-                return m
-        tail = "\n".join(self.lines[-40:])
-        raise AssertionError(f"MAVProxy never printed /{pattern}/; last lines:\n{tail}")
-
-    def close(self) -> None:
-        if self.proc.poll() is None:
-            try:
-                # MAVProxy only honours "exit" with requireexit set; stopping cleanly
-                # flushes its telemetry log
-                self.type("set requireexit True")
-                self.type("exit")
-                assert self.proc.stdin is not None
-                self.proc.stdin.close()  # its input loop checks for the stop only between lines
-                self.proc.wait(timeout=30)
-            except (OSError, subprocess.TimeoutExpired):
-                self.proc.send_signal(signal.SIGINT)
-                self.proc.terminate()
-                try:
-                    self.proc.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    self.proc.kill()
-                    self.proc.wait(timeout=10)
-        for stream in (self.proc.stdin, self.proc.stdout):
-            if stream is not None and not stream.closed:
-                stream.close()
-
-
 class Vehicle:
     """The bridge served by its own thread on the wall clock, fed by the reference sink."""
 
-    def __init__(self, port: int, key: bytes | None = None) -> None:
+    def __init__(self, port: int, key: bytes | None = None, allow_unsigned: bool = False
+                 ) -> None:
         self.sink = RuleBasedCommandSink(on_change=lambda ph: self.bridge.publish(_telemetry(ph)))
         cfg = MavlinkConfig(uri=f"udpout:127.0.0.1:{port}", signing=key is not None)
-        self.bridge = MavlinkBridge(cfg, self.sink, key=key)
+        self.bridge = MavlinkBridge(cfg, self.sink, key=key,
+                                    allow_unsigned_commands=allow_unsigned)
         self.bridge.publish(_telemetry(FlightPhase.PREFLIGHT))
         self.bridge.start()
 
 
 @pytest.fixture
 def port() -> int:
-    return _free_udp_port()
+    return free_udp_port()
 
 
 @pytest.fixture
 def vehicle(port: int) -> Iterator[Vehicle]:
-    v = Vehicle(port)
+    v = Vehicle(port, allow_unsigned=True)  # unsigned commands allowed on purpose
     yield v
     v.bridge.close()
 
@@ -214,3 +130,23 @@ def test_that_mavproxy_with_the_lab_passphrase_arms_a_signing_vehicle(
     sig = v.bridge.stats().signing
     assert sig is not None and sig.good >= 2
     assert sig.replayed == 0
+
+
+def test_that_an_unsigned_mavproxy_cannot_arm_a_vehicle_that_has_no_key(
+        port: int, tmp_path: Path) -> None:
+    # Fixture: the secure default: no key, unsigned commands not allowed
+    v = Vehicle(port)
+    mp = MavProxy(port, tmp_path)
+    try:
+        mp.expect(r"Detected vehicle 1:1")
+        # Test
+        mp.type("arm throttle")
+        # Assert: denied, never reached the flight, counted; telemetry still flows
+        mp.expect(r"COMMAND_ACK: COMPONENT_ARM_DISARM: DENIED")
+        mp.type("status ATTITUDE")
+        mp.expect(r"ATTITUDE \{")
+    finally:
+        mp.close()
+        v.bridge.close()
+    assert v.sink.submissions == []
+    assert v.bridge.stats().refused_unsigned >= 1

@@ -35,7 +35,8 @@ def test_that_a_bad_uri_or_rate_names_the_key_and_line() -> None:
 
 
 def test_that_a_signing_bridge_reads_its_key_from_the_environment_or_refuses_to_start() -> None:
-    from drivers.mavlink import MavlinkBridge, SigningKeyError
+    from drivers.mavlink import SigningKeyError
+    from groundstation.mavlink_bridge import MavlinkBridge
     from groundstation.operator import RuleBasedCommandSink
 
     cfg = _load("uri: udpout:127.0.0.1:9\nsigning: true\nkey_env: LAB_KEY\n")

@@ -10,9 +10,9 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
 from drivers.errors import TransportUriError
-from drivers.mavlink import messages
 from drivers.mavlink.frames import q_from_euler
 from drivers.mavlink.link import MavlinkCodec, parse_mavlink_uri
+from groundstation import mavlink_messages as messages
 from groundstation.operator import (
     FlightPhase,
     SensorHealth,
@@ -66,7 +66,7 @@ def test_that_positions_and_velocities_are_ned_and_odometry_velocity_is_body_frd
     assert (lp.x, lp.y, lp.z) == pytest.approx((0.5, 0.2, -1.0))
     assert (lp.vx, lp.vy, lp.vz) == pytest.approx((0.1, -0.2, 0.3))
     od = _roundtrip(messages.odometry(TEL))
-    assert (od.frame_id, od.child_frame_id) == (M.MAV_FRAME_LOCAL_NED, M.MAV_FRAME_BODY_FRD)
+    assert (od.frame_id, od.child_frame_id) == (M.MAV_FRAME_LOCAL_FRD, M.MAV_FRAME_BODY_FRD)
     assert od.time_usec == 12_345_000
     # |v| is frame independent; the body-frame velocity rotated back gives the NED one
     assert math.hypot(od.vx, od.vy, od.vz) == pytest.approx(math.hypot(0.1, 0.2, 0.3), rel=1e-5)

@@ -118,12 +118,17 @@ def test_that_a_forged_far_future_frame_does_not_lock_out_the_genuine_stream() -
     assert sut.accept(_arm_frame(*_encoder(KEY)), 76)
 
 
-def test_that_a_new_stream_more_than_a_minute_old_counts_as_a_replay() -> None:
+def test_that_a_frame_more_than_a_minute_old_is_stale_and_counted_apart() -> None:
     sut = _verifier()
     stale = _arm_frame(*_encoder(KEY, timestamp=NOW_TS - 61 * 100_000))
     fresh_enough = _arm_frame(*_encoder(KEY, timestamp=NOW_TS - 59 * 100_000, link_id=3))
-    assert sut.classify(stale) is Verdict.REPLAY
+    assert sut.classify(stale) is Verdict.STALE
     assert sut.classify(fresh_enough) is Verdict.GOOD
+    assert not sut.accept(stale, 76)
+    assert sut.accept(fresh_enough, 76)
+    assert not sut.accept(fresh_enough, 76)  # the same frame again: a replay, not stale
+    st_ = sut.stats()
+    assert (st_.stale, st_.replayed, st_.good, st_.rejected) == (1, 1, 1, 2)
 
 
 def test_that_the_codec_signs_what_it_sends_and_keeps_timestamps_increasing() -> None:

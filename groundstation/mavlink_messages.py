@@ -1,5 +1,7 @@
 """Telemetry snapshots -> MAVLink messages. Pure: builds pymavlink message objects, no I/O.
 
+A ground-station module (it knows the flight phases); the wire layer is :mod:`drivers.mavlink`.
+
 What each message carries (frames: :mod:`drivers.mavlink.frames`; world x = north):
 
 HEARTBEAT
@@ -12,12 +14,17 @@ SYS_STATUS
     IMU -> 3D_GYRO | 3D_ACCEL, MoCap -> VISION_POSITION, UKF -> AHRS, BL-Ctrls ->
     MOTOR_OUTPUTS, tilt servo -> PROPULSION, battery -> BATTERY, geofence -> GEOFENCE,
     preflight -> PREARM_CHECK.
+EXTENDED_SYS_STATE
+    ``landed_state`` from the phase (:func:`landed_state`): PREFLIGHT, ARMED, DISARMED and CUT
+    ON_GROUND, TAKEOFF TAKEOFF, MISSION IN_AIR, LANDING LANDING; ``vtol_state`` UNDEFINED.
 ATTITUDE / ATTITUDE_QUATERNION
     body FRD -> NED attitude; roll/pitch/yaw (ZYX) and the quaternion; body rates in FRD.
 LOCAL_POSITION_NED
     position and velocity in NED (m, m/s).
 ODOMETRY
-    ``frame_id`` LOCAL_NED, ``child_frame_id`` BODY_FRD: position NED, attitude quaternion,
+    ``frame_id`` LOCAL_FRD (z down, x along the world x axis, which is not earth-aligned: the
+    frame MAVLink defines for this and the one MAVSDK's ``Odometry::MavFrame`` names
+    ``LocalFrd``), ``child_frame_id`` BODY_FRD: position, attitude quaternion,
     velocity expressed in body FRD (the child frame, as MAVLink defines it), body rates;
     covariances unknown (first element NaN); ``estimator_type`` VIO-less MOCAP.
 ACTUATOR_OUTPUT_STATUS
@@ -104,6 +111,28 @@ def heartbeat(tel: VehicleTelemetry | None) -> Any:
                                        int(tel.phase), system_status(tel), 3)
 
 
+_LANDED_STATE = {
+    FlightPhase.PREFLIGHT: M.MAV_LANDED_STATE_ON_GROUND,
+    FlightPhase.ARMED: M.MAV_LANDED_STATE_ON_GROUND,
+    FlightPhase.TAKEOFF: M.MAV_LANDED_STATE_TAKEOFF,
+    FlightPhase.MISSION: M.MAV_LANDED_STATE_IN_AIR,
+    FlightPhase.LANDING: M.MAV_LANDED_STATE_LANDING,
+    FlightPhase.DISARMED: M.MAV_LANDED_STATE_ON_GROUND,
+    # motors cut: the session is over and the vehicle is down (caught, or on the floor)
+    FlightPhase.CUT: M.MAV_LANDED_STATE_ON_GROUND,
+}
+
+
+def landed_state(phase: FlightPhase) -> int:
+    return int(_LANDED_STATE[phase])
+
+
+def extended_sys_state(tel: VehicleTelemetry | None) -> Any:
+    """EXTENDED_SYS_STATE; before the first snapshot the vehicle is on the ground."""
+    phase = FlightPhase.PREFLIGHT if tel is None else tel.phase
+    return M.MAVLink_extended_sys_state_message(M.MAV_VTOL_STATE_UNDEFINED, landed_state(phase))
+
+
 def sys_status(tel: VehicleTelemetry) -> Any:
     volt = tel.battery_v
     voltage_mv = UINT16_MAX if not math.isfinite(volt) else max(0, min(UINT16_MAX - 1,
@@ -143,7 +172,7 @@ def odometry(tel: VehicleTelemetry) -> Any:
     v_body = rotate_inverse(q, world_to_ned(tel.vel_w_m_s))
     unknown = [math.nan] + [0.0] * 20
     return M.MAVLink_odometry_message(
-        time_usec(tel), M.MAV_FRAME_LOCAL_NED, M.MAV_FRAME_BODY_FRD, p[0], p[1], p[2], list(q),
+        time_usec(tel), M.MAV_FRAME_LOCAL_FRD, M.MAV_FRAME_BODY_FRD, p[0], p[1], p[2], list(q),
         v_body[0], v_body[1], v_body[2], w[0], w[1], w[2], unknown, unknown, 0,
         M.MAV_ESTIMATOR_TYPE_MOCAP, 100)
 

@@ -1,15 +1,24 @@
 """The MAVLink bridge: the ground station seen by a GCS (QGroundControl, MAVProxy) over UDP.
 
+A ground-station part: it knows the flight phases and the operator vocabulary
+(:mod:`groundstation.operator`) and maps them onto the wire layer of :mod:`drivers.mavlink`
+(codec, link, signing, frames). The session wiring (keys, the loop's command queue, the stats
+file) is :mod:`groundstation.gcs`.
+
 Wire protocol: MAVLink2, ``common`` dialect (pymavlink 2.4.50), one UDP link chosen by URI
 (:mod:`drivers.mavlink.link`: ``udpout:HOST:PORT`` or ``udpin:HOST:PORT``), system id 1 and
 component id 1 (MAV_COMP_ID_AUTOPILOT1) by default, optionally signed
 (:mod:`drivers.mavlink.signing`).
 
 Telemetry out (rates in Hz from :class:`MavlinkConfig`, 0 disables; layout in
-:mod:`drivers.mavlink.messages`): HEARTBEAT, SYS_STATUS, ATTITUDE, ATTITUDE_QUATERNION,
-LOCAL_POSITION_NED, ODOMETRY, ACTUATOR_OUTPUT_STATUS, and STATUSTEXT for every event of the
-snapshots, every phase transition (``ARMED -> TAKEOFF``) and every health flag that changes
-(``fault: mocap`` / ``ok: mocap``). A GCS may change a rate with MAV_CMD_SET_MESSAGE_INTERVAL.
+:mod:`groundstation.mavlink_messages`): HEARTBEAT, SYS_STATUS, EXTENDED_SYS_STATE (landed
+state), ATTITUDE, ATTITUDE_QUATERNION, LOCAL_POSITION_NED, ODOMETRY, ACTUATOR_OUTPUT_STATUS,
+and STATUSTEXT, once, for every event of the snapshots, every phase transition
+(``ARMED -> TAKEOFF``; off with ``phase_events=False`` when the events already carry the
+transitions, as a flight session's do) and every health flag that changes (``fault: mocap`` /
+``ok: mocap``). A GCS may change a rate with MAV_CMD_SET_MESSAGE_INTERVAL. At the end,
+:meth:`MavlinkBridge.announce_final` repeats the final state (HEARTBEAT disarmed,
+EXTENDED_SYS_STATE, one STATUSTEXT) for a while so that a GCS sees how the session ended.
 
 Commands in (each answered by COMMAND_ACK with the sink's :class:`CommandResult`):
 
@@ -39,17 +48,29 @@ NAK (so MAVProxy falls back to PARAM_REQUEST_LIST), TIMESYNC requests are answer
 HEARTBEATs are tracked for link-loss detection; everything else is ignored and counted by type.
 Messages addressed to another system or component are ignored.
 
-Security: with a key (:func:`~drivers.mavlink.signing.load_signing_key`, never the session
-YAML) every outgoing frame is signed, and incoming frames are accepted only when signed with
-that key and fresh; unsigned, wrongly signed and replayed frames are dropped before being
-looked at, and counted apart. ``allow_unsigned_ids`` lists the messages accepted *unsigned*
-(default: RADIO_STATUS 109 and RADIO 166, status reports from telemetry radios that cannot sign;
-neither can command anything). A badly signed frame is never accepted, allow-listed or not.
+Security, secure by default:
+
+* With a key (:func:`~drivers.mavlink.signing.load_signing_key`, never the session YAML)
+  every outgoing frame is signed, and incoming frames are accepted only when signed with that
+  key and fresh; unsigned, wrongly signed, replayed and stale frames are dropped before being
+  looked at, and counted apart. ``allow_unsigned_ids`` lists the messages accepted *unsigned*
+  (default: RADIO_STATUS 109 and RADIO 166, status reports from telemetry radios that cannot
+  sign; neither can command anything). A badly signed frame is never accepted.
+* Without a key, every command that changes the flight (arm, disarm, take-off, land,
+  emergency stop, tilt, setpoints, PARAM_SET) is refused with MAV_RESULT_DENIED and counted
+  (``refused_unsigned``), unless the owner passes ``allow_unsigned_commands=True``. Telemetry,
+  parameter reads, message requests and rates still work.
+* No frame raises out of the bridge: each handler is guarded (a failure is counted in
+  ``handler_errors`` and answered FAILED when it was a command). Values outside the physical
+  range are refused and counted (``refused_out_of_range``), never delivered: non-finite
+  parameters, a take-off height outside (0, MAX_TAKEOFF_ALT_M], a tilt outside
+  [0, ``max_tilt_rad``], setpoint positions farther than ``setpoint_range_m`` from the origin,
+  quaternions that cannot be normalised, MoCap poses beyond
+  :data:`~drivers.mavlink.mocap.MAX_POSE_RANGE_M` or with non-finite angles.
 
 MoCap input: ATT_POS_MOCAP (q + NED position) and VISION_POSITION_ESTIMATE (NED position +
 roll/pitch/yaw) are converted to the world frame and offered by :attr:`MavlinkBridge.mocap`, a
-:class:`~drivers.mocap.pose.PoseSource` (capture time = arrival time on the ground-station
-clock minus ``mocap_latency_s``; the sender's clock is not comparable to ours).
+:class:`~drivers.mocap.pose.PoseSource` (:class:`~drivers.mavlink.mocap.MavlinkPoseSource`).
 
 Threading: :meth:`MavlinkBridge.publish` is called by the telemetry process at any rate; it
 only swaps a reference and appends events under a lock (never blocks on I/O). Either
@@ -70,23 +91,20 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from config.schema import ConfigValueError, spec
-from drivers.mavlink import messages
-from drivers.mavlink.frames import (
-    ned_to_world,
-    q_from_euler,
-    q_ned_to_world,
-    q_normalized,
-)
-from drivers.mavlink.link import MavlinkCodec, UdpEndpoint, parse_mavlink_uri
+from drivers.mavlink.config import MavlinkConfig
+from drivers.mavlink.frames import ned_to_world, q_ned_to_world, q_normalized
+from drivers.mavlink.link import MavlinkCodec, UdpEndpoint
+from drivers.mavlink.mocap import MavlinkPoseSource
 from drivers.mavlink.signing import (
     SignatureVerifier,
     SigningKeyError,
     SigningStats,
     load_signing_key,
 )
-from drivers.mocap.pose import MocapStats, PoseSample, StreamMonitor, TrackingStatus
+from groundstation import mavlink_messages as messages
 from groundstation.operator import (
+    MAX_TAKEOFF_ALT_M,
+    MAX_TILT_RAD,
     Arm,
     CommandResult,
     Disarm,
@@ -114,52 +132,13 @@ FTP_OPCODE_NAK = 129
 FTP_OPEN_OPCODES = (3, 4, 6, 11)  # ListDirectory, OpenFileRO, CreateFile, OpenFileWO
 FTP_ERR_UNKNOWN_COMMAND = 7
 FTP_ERR_FILE_NOT_FOUND = 10
-MOCAP_BODY_ID = 0
-
-
-@dataclass(frozen=True)
-class MavlinkConfig:
-    """The bridge's settings (a session YAML's ``mavlink:`` block). No key material here."""
-
-    uri: str = spec("udpout:127.0.0.1:14550", doc="udpout:HOST:PORT or udpin:HOST:PORT")
-    sysid: int = spec(1, ge=1, le=255, doc="our MAVLink system id")
-    compid: int = spec(1, ge=1, le=255, doc="our component id (1 = autopilot)")
-    heartbeat_hz: float = spec(1.0, ge=0.0, le=50.0, doc="HEARTBEAT rate")
-    sys_status_hz: float = spec(2.0, ge=0.0, le=50.0, doc="SYS_STATUS rate")
-    attitude_hz: float = spec(50.0, ge=0.0, le=500.0, doc="ATTITUDE rate")
-    attitude_quaternion_hz: float = spec(50.0, ge=0.0, le=500.0, doc="ATTITUDE_QUATERNION rate")
-    local_position_hz: float = spec(20.0, ge=0.0, le=500.0, doc="LOCAL_POSITION_NED rate")
-    odometry_hz: float = spec(20.0, ge=0.0, le=500.0, doc="ODOMETRY rate")
-    actuator_output_hz: float = spec(10.0, ge=0.0, le=500.0, doc="ACTUATOR_OUTPUT_STATUS rate")
-    signing: bool = spec(False, doc="require signed commands and sign telemetry")
-    key_file: str | None = spec(None, doc="file holding the key (hex or passphrase)")
-    key_env: str = spec("FASTHEX_MAVLINK_KEY", doc="environment variable holding the key")
-    link_id: int = spec(0, ge=0, le=255, doc="signing link id of our outgoing stream")
-    allow_unsigned_ids: tuple[int, ...] = spec((109, 166), ge=0,
-                                               doc="message ids accepted unsigned")
-    gcs_timeout_s: float = spec(3.0, gt=0.0, doc="GCS heartbeat age counted as link lost")
-    mocap_latency_s: float = spec(0.0, ge=0.0, le=1.0, doc="assumed age of MAVLink MoCap poses")
-
-    def __post_init__(self) -> None:
-        try:
-            parse_mavlink_uri(self.uri)
-        except ValueError as exc:
-            raise ConfigValueError("uri", str(exc)) from None
-
-    def rates_hz(self) -> dict[str, float]:
-        return {
-            "HEARTBEAT": self.heartbeat_hz,
-            "SYS_STATUS": self.sys_status_hz,
-            "ATTITUDE": self.attitude_hz,
-            "ATTITUDE_QUATERNION": self.attitude_quaternion_hz,
-            "LOCAL_POSITION_NED": self.local_position_hz,
-            "ODOMETRY": self.odometry_hz,
-            "ACTUATOR_OUTPUT_STATUS": self.actuator_output_hz,
-        }
+#: Default bound on offboard setpoint positions (m from the world origin): a lab cage.
+SETPOINT_RANGE_M = 10.0
 
 
 _BUILDERS: dict[str, Callable[[VehicleTelemetry], Any]] = {
     "SYS_STATUS": messages.sys_status,
+    "EXTENDED_SYS_STATE": messages.extended_sys_state,
     "ATTITUDE": messages.attitude,
     "ATTITUDE_QUATERNION": messages.attitude_quaternion,
     "LOCAL_POSITION_NED": messages.local_position_ned,
@@ -169,6 +148,7 @@ _BUILDERS: dict[str, Callable[[VehicleTelemetry], Any]] = {
 _MSG_IDS: dict[int, str] = {
     M.MAVLINK_MSG_ID_HEARTBEAT: "HEARTBEAT",
     M.MAVLINK_MSG_ID_SYS_STATUS: "SYS_STATUS",
+    M.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: "EXTENDED_SYS_STATE",
     M.MAVLINK_MSG_ID_ATTITUDE: "ATTITUDE",
     M.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: "ATTITUDE_QUATERNION",
     M.MAVLINK_MSG_ID_LOCAL_POSITION_NED: "LOCAL_POSITION_NED",
@@ -189,47 +169,14 @@ class BridgeStats:
     events_dropped: int  # status events lost because the queue was full
     no_peer_drops: int  # telemetry frames not sent: no GCS address yet (udpin)
     gcs_heartbeat_age_s: float  # inf before the first GCS heartbeat
+    refused_unsigned: int = 0  # flight-changing commands refused: no key, unsigned not allowed
+    refused_out_of_range: int = 0  # commands, setpoints, params, poses with unphysical values
+    handler_errors: int = 0  # messages whose handling failed (guarded, never raised)
 
-
-class MavlinkPoseSource:
-    """MoCap poses received over MAVLink as a :class:`~drivers.mocap.pose.PoseSource`."""
-
-    def __init__(self, clock_ns: Callable[[], int], latency_s: float) -> None:
-        self._clock_ns = clock_ns
-        self._latency_s = latency_s
-        self._monitor = StreamMonitor(clock_ns)
-        self._lock = threading.Lock()
-        self._latest: PoseSample | None = None
-        self._seq = 0
-
-    def latest(self) -> PoseSample | None:
-        with self._lock:
-            return self._latest
-
-    def stats(self) -> MocapStats:
-        return self._monitor.snapshot()
-
-    def on_pose(self, pos_ned_m: tuple[float, float, float],
-                q_ned_frd: tuple[float, float, float, float], source: str) -> None:
-        rx = self._clock_ns()
-        try:
-            q = q_ned_to_world(q_normalized(q_ned_frd))
-        except ValueError:
-            self._monitor.count_malformed()
-            return
-        if not all(math.isfinite(v) for v in pos_ned_m):
-            self._monitor.count_malformed()
-            return
-        self._seq += 1
-        sample = PoseSample(
-            t_ns=rx - int(self._latency_s * 1e9), rx_t_ns=rx, frame_number=self._seq,
-            body_id=MOCAP_BODY_ID, body_name=source, status=TrackingStatus.OK,
-            pos_w_m=ned_to_world(pos_ned_m), q_wb=q, latency_s=self._latency_s,
-            mean_error_m=math.nan)
-        self._monitor.on_frame(self._seq, rx, self._latency_s)
-        self._monitor.on_sample(sample)
-        with self._lock:
-            self._latest = sample
+    @property
+    def rejected_frames(self) -> int:
+        """Frames dropped by the signature check (0 without a key)."""
+        return 0 if self.signing is None else self.signing.rejected
 
 
 class MavlinkBridge:
@@ -237,12 +184,21 @@ class MavlinkBridge:
 
     def __init__(self, config: MavlinkConfig, sink: OperatorCommandSink, *,
                  params: Sequence[ParamSpec] = (), key: bytes | None = None,
+                 allow_unsigned_commands: bool = False, phase_events: bool = True,
+                 max_tilt_rad: float = MAX_TILT_RAD,
+                 setpoint_range_m: float = SETPOINT_RANGE_M,
                  clock: Callable[[], float] = time.monotonic,
                  clock_ns: Callable[[], int] = time.monotonic_ns,
                  max_events: int = 256) -> None:
         if config.signing and key is None:
             raise ValueError("signing is on but no key was given (load_signing_key)")
         self.config = config
+        self.signing = config.signing
+        # without a key anyone on the network could send these: refused unless allowed
+        self.allow_unsigned_commands = allow_unsigned_commands
+        self._phase_events = phase_events
+        self.max_tilt_rad = max_tilt_rad
+        self.setpoint_range_m = setpoint_range_m
         self._sink = sink
         self._clock = clock
         self._clock_ns = clock_ns
@@ -271,6 +227,9 @@ class MavlinkBridge:
         self._cmd_results: Counter[str] = Counter()
         self._sp_results: Counter[str] = Counter()
         self._ignored: Counter[str] = Counter()
+        self._refused_unsigned = 0
+        self._refused_range = 0
+        self._handler_errors = 0
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._step_lock = threading.Lock()
@@ -278,7 +237,8 @@ class MavlinkBridge:
     @classmethod
     def from_config(cls, config: MavlinkConfig, sink: OperatorCommandSink, *,
                     params: Sequence[ParamSpec] = (),
-                    environ: Mapping[str, str] | None = None) -> MavlinkBridge:
+                    environ: Mapping[str, str] | None = None,
+                    **kwargs: Any) -> MavlinkBridge:
         """The bridge of a session: with signing on, the key is read from ``key_file`` or
         the ``key_env`` variable (:class:`SigningKeyError` naming them when there is none)."""
         key = None
@@ -287,7 +247,7 @@ class MavlinkBridge:
             if key is None:
                 raise SigningKeyError(
                     config.uri, f"signing is on but no key: set ${config.key_env} or key_file")
-        return cls(config, sink, params=params, key=key)
+        return cls(config, sink, params=params, key=key, **kwargs)
 
     # -- the telemetry side -------------------------------------------------------------
 
@@ -300,7 +260,8 @@ class MavlinkBridge:
                   "geofence": h.geofence_ok}
         with self._lock:
             new: list[StatusEvent] = []
-            if self._prev_phase is not None and tel.phase is not self._prev_phase:
+            if self._phase_events and self._prev_phase is not None and \
+                    tel.phase is not self._prev_phase:
                 sev = Severity.EMERGENCY if tel.phase is FlightPhase.CUT else Severity.NOTICE
                 new.append(StatusEvent(tel.t_s, f"{self._prev_phase.name} -> {tel.phase.name}",
                                        sev))
@@ -339,17 +300,67 @@ class MavlinkBridge:
         now = self._clock() if now_s is None else now_s
         with self._step_lock:
             for data, sender in self._endpoint.recv_all():
-                msgs = self._codec.decode(data)
-                if msgs:
-                    self._endpoint.adopt_peer(sender)
-                for msg in msgs:
-                    try:
-                        self._handle(msg, now)
-                    except Exception:  # a bad message must not stop the link
-                        log.exception("%s: error handling %s", self._endpoint.name,
-                                      msg.get_type())
-                        self._ignored["ERROR_" + msg.get_type()] += 1
+                self._feed_locked(data, now, sender)
             self._send_due(now)
+
+    def feed(self, data: bytes, now_s: float,
+             sender: tuple[str, int] | None = None) -> None:
+        """Act on one datagram as if it had arrived now (the input path of :meth:`step`;
+        public for tests and fuzzing). Never raises: every failure is counted."""
+        with self._step_lock:
+            self._feed_locked(data, now_s, sender)
+
+    def _feed_locked(self, data: bytes, now: float, sender: tuple[str, int] | None) -> None:
+        try:
+            msgs = self._codec.decode(data)
+        except Exception:  # the codec guards itself; this is the last line
+            self._handler_failed("datagram")
+            return
+        if msgs and sender is not None:
+            self._endpoint.adopt_peer(sender)
+        for msg in msgs:
+            try:
+                self._handle(msg, now)
+            except Exception:  # a bad message must not stop the link
+                self._handler_failed(_type_of(msg))
+
+    def _handler_failed(self, kind: str) -> None:
+        self._handler_errors += 1
+        self._ignored["ERROR_" + kind] += 1
+        # one traceback tells the story; a flood of bad frames must not flood the log
+        if self._handler_errors == 1:
+            log.warning("%s: error handling %s (further errors counted only)",
+                        self._endpoint.name, kind, exc_info=True)
+        else:
+            log.debug("%s: error handling %s", self._endpoint.name, kind, exc_info=True)
+
+    def set_rate(self, name: str, hz: float) -> None:
+        """Send ``name`` (one of :meth:`MavlinkConfig.rates_hz`) at ``hz`` from now on."""
+        with self._step_lock:
+            self._periods[name] = 1.0 / hz if hz > 0 else None
+            self._next_due.pop(name, None)
+
+    def announce_final(self, text: str, duration_s: float, *,
+                       severity: Severity = Severity.NOTICE, interval_s: float = 0.5,
+                       sleep: Callable[[float], None] = time.sleep) -> None:
+        """Announce the session's end: ``text`` once as STATUSTEXT, then HEARTBEAT and
+        EXTENDED_SYS_STATE of the last snapshot every ``interval_s`` for ``duration_s``
+        (wall time: a GCS's link-state logic runs on its own clock). Serves the link
+        meanwhile, also without the service thread."""
+        self.post_event(text, severity)
+        for name in ("HEARTBEAT", "EXTENDED_SYS_STATE"):
+            self.set_rate(name, 1.0 / interval_s)
+        end = self._clock() + duration_s
+        threaded = self._thread is not None
+        while True:
+            now = self._clock()
+            if not threaded:
+                self.step(now)
+            if now >= end:
+                break
+            sleep(min(0.05, end - now))
+        if not threaded:
+            self.step()
 
     def next_due_s(self, now_s: float) -> float:
         """Seconds until the next telemetry message is due (for the service thread's wait)."""
@@ -421,7 +432,9 @@ class MavlinkBridge:
             command_results=dict(self._cmd_results), setpoint_results=dict(self._sp_results),
             ignored=dict(self._ignored), events_dropped=dropped,
             no_peer_drops=self._endpoint.no_peer_drops,
-            gcs_heartbeat_age_s=math.inf if t is None else now - t)
+            gcs_heartbeat_age_s=math.inf if t is None else now - t,
+            refused_unsigned=self._refused_unsigned, refused_out_of_range=self._refused_range,
+            handler_errors=self._handler_errors)
 
     # -- sending -------------------------------------------------------------------------
 
@@ -503,15 +516,37 @@ class MavlinkBridge:
                 self._send(M.MAVLink_timesync_message(self._clock_ns(), msg.ts1))
             return
         if kind == "ATT_POS_MOCAP":
-            self.mocap.on_pose((msg.x, msg.y, msg.z), tuple(msg.q), "ATT_POS_MOCAP")
+            q = tuple(float(v) for v in msg.q)
+            if len(q) != 4 or not self.mocap.on_pose(
+                    (float(msg.x), float(msg.y), float(msg.z)), q,
+                    "ATT_POS_MOCAP"):
+                self._refused_range += 1
             return
         if kind == "VISION_POSITION_ESTIMATE":
-            q = q_from_euler(msg.roll, msg.pitch, msg.yaw)
-            self.mocap.on_pose((msg.x, msg.y, msg.z), q, "VISION_POSITION_ESTIMATE")
+            if not self.mocap.on_euler_pose((float(msg.x), float(msg.y), float(msg.z)),
+                                            float(msg.roll), float(msg.pitch), float(msg.yaw),
+                                            "VISION_POSITION_ESTIMATE"):
+                self._refused_range += 1
             return
         self._ignored[kind] += 1
 
+    def _trusted(self) -> bool:
+        """May a frame that got this far change the flight? With a key every accepted frame
+        was signed (allow-listed unsigned ids command nothing); without one, only if the
+        owner allowed unsigned commands."""
+        return self.signing or self.allow_unsigned_commands
+
+    def _refuse_unsigned(self) -> CommandResult:
+        self._refused_unsigned += 1
+        return CommandResult.DENIED
+
+    def _out_of_range(self) -> CommandResult:
+        self._refused_range += 1
+        return CommandResult.DENIED
+
     def _submit(self, cmd: OperatorCommand) -> CommandResult:
+        if not self._trusted():
+            return self._refuse_unsigned()
         try:
             return CommandResult(self._sink.submit(cmd))
         except Exception:
@@ -522,9 +557,9 @@ class MavlinkBridge:
                              ) -> OperatorCommand | CommandResult | None:
         """The operator command for ``command``; a result when it is malformed; None when
         we do not support it."""
-        if command in (M.MAV_CMD_COMPONENT_ARM_DISARM, M.MAV_CMD_DO_FLIGHTTERMINATION) and \
-                not math.isfinite(p[0]):
-            return CommandResult.DENIED
+        if command in (M.MAV_CMD_COMPONENT_ARM_DISARM, M.MAV_CMD_DO_FLIGHTTERMINATION,
+                       MAV_CMD_SET_TILT) and not math.isfinite(p[0]):
+            return self._out_of_range()
         if command == M.MAV_CMD_COMPONENT_ARM_DISARM:
             if p[0] >= 0.5:
                 return Arm()
@@ -532,13 +567,18 @@ class MavlinkBridge:
                 return EmergencyStop("force disarm")
             return Disarm()
         if command == M.MAV_CMD_NAV_TAKEOFF:
+            if not (math.isfinite(p[6]) and 0.0 < p[6] <= MAX_TAKEOFF_ALT_M):
+                return self._out_of_range()
             return Takeoff(alt_m=p[6])
         if command == M.MAV_CMD_NAV_LAND:
             return Land()
         if command == M.MAV_CMD_DO_FLIGHTTERMINATION and p[0] >= 0.5:
             return EmergencyStop("flight termination")
         if command == MAV_CMD_SET_TILT:
-            return SetTilt(tilt_rad=math.radians(p[0]))
+            tilt = math.radians(p[0])
+            if not 0.0 <= tilt <= self.max_tilt_rad + 1e-9:  # the vehicle's mechanical range
+                return self._out_of_range()
+            return SetTilt(tilt_rad=min(tilt, self.max_tilt_rad))
         return None
 
     def _on_command(self, msg: Any) -> None:
@@ -560,7 +600,7 @@ class MavlinkBridge:
                 else:
                     result = self._submit(cmd)
         except Exception:  # still answer: a GCS waiting for the ACK would retry forever
-            log.exception("%s: command %d failed", self._endpoint.name, command)
+            self._handler_failed(f"COMMAND {command}")
             result = CommandResult.FAILED
         self._cmd_results[result.name] += 1
         self._send(M.MAVLink_command_ack_message(command, int(result), 0, 0,
@@ -637,9 +677,8 @@ class MavlinkBridge:
             self._ignored["PARAM_SET_UNKNOWN"] += 1
             return
         value = float(msg.param_value)
-        result = CommandResult.DENIED
-        if spec_.accepts(value):
-            result = self._submit(SetParam(name, value))
+        result = self._submit(SetParam(name, value)) if spec_.accepts(value) else \
+            self._out_of_range()
         if result is CommandResult.ACCEPTED:
             self._param_values[name] = value
         self._cmd_results["PARAM_SET_" + result.name] += 1
@@ -654,11 +693,15 @@ class MavlinkBridge:
         mask = int(msg.type_mask)
         pos_given = not mask & 0b111
         yaw_given = not mask & M.POSITION_TARGET_TYPEMASK_YAW_IGNORE
-        pos = ned_to_world((msg.x, msg.y, msg.z)) if pos_given else None
+        pos = ned_to_world((float(msg.x), float(msg.y), float(msg.z))) if pos_given else None
         # yaw about NED down is minus the yaw about world z up
         yaw = -float(msg.yaw) if yaw_given else None
         if pos is None and yaw is None:
             self._sp_results["UNSUPPORTED"] += 1
+            return
+        if (pos is not None and not _within(pos, self.setpoint_range_m)) or (
+                yaw is not None and not math.isfinite(yaw)):
+            self._sp_results[self._out_of_range().name] += 1
             return
         result = self._submit(PoseSetpoint(pos_w_m=pos, yaw_rad=yaw))
         self._sp_results[result.name] += 1
@@ -673,10 +716,11 @@ class MavlinkBridge:
         if int(msg.type_mask) & M.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE:
             self._sp_results["UNSUPPORTED"] += 1
             return
+        q_in = tuple(float(v) for v in msg.q)
         try:
-            q = q_ned_to_world(q_normalized(tuple(msg.q)))
-        except ValueError:
-            self._sp_results["DENIED"] += 1
+            q = q_ned_to_world(q_normalized(q_in))  # type: ignore[arg-type]
+        except (ValueError, OverflowError, IndexError):
+            self._sp_results[self._out_of_range().name] += 1
             return
         result = self._submit(PoseSetpoint(q_wb=q))
         self._sp_results[result.name] += 1
@@ -700,6 +744,17 @@ class MavlinkBridge:
         self._ignored["FILE_TRANSFER_PROTOCOL"] += 1
 
 
+def _within(v: tuple[float, float, float], range_m: float) -> bool:
+    return all(math.isfinite(c) for c in v) and math.sqrt(sum(c * c for c in v)) <= range_m
+
+
+def _type_of(msg: Any) -> str:
+    try:
+        return str(msg.get_type())
+    except Exception:
+        return "UNKNOWN"
+
+
 def _as_int(x: float) -> int | None:
     """``round(x)``, or None for NaN and infinities (a GCS may send anything)."""
     return round(x) if math.isfinite(x) else None
@@ -711,4 +766,5 @@ def _param_name(raw: Any) -> str:
     return str(raw).split("\x00", 1)[0]
 
 
-__all__ = ["BridgeStats", "MavlinkBridge", "MavlinkConfig", "MavlinkPoseSource"]
+__all__ = ["BridgeStats", "MavlinkBridge", "MavlinkConfig", "MavlinkPoseSource"]  # config and
+# pose source re-exported: a bridge's users need them together
