@@ -1,5 +1,10 @@
 """``fasthex probe [SESSION]``: identify the session's hardware (or emulated hardware) without
-arming: Flight-Ctrl firmware, servo model and mode, MoCap bodies and frame rate."""
+arming: Flight-Ctrl firmware, servo model and mode, MoCap bodies and frame rate.
+
+It only asks: the servo is read (PING and READ), the Flight-Ctrl is identified and, when it
+answered in tk3, left with its streams off and its motors stopped (what a crashed client may
+have left on). A device that does not answer gets one line ``URI: NOT FOUND: why``.
+"""
 
 from __future__ import annotations
 
@@ -46,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
                       f"{ident.firmware_id} ({verdict})")
                 ok &= ident.accepted
             except DriverError as exc:
-                print(f"flight-ctrl  {uris.flight_ctrl}: NOT FOUND ({exc})")
+                print(f"flight-ctrl  {uris.flight_ctrl}: NOT FOUND: {_reason(exc)}")
                 ok = False
             try:
                 s = probe_servo(uris.servo)
@@ -56,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
                       f"{s.present_position_steps} steps")
                 ok &= s.is_mx28_p1
             except DriverError as exc:
-                print(f"servo        {uris.servo}: NOT FOUND ({exc})")
+                print(f"servo        {uris.servo}: NOT FOUND: {_reason(exc)}")
                 ok = False
             try:
                 with open_pose_source(uris.mocap) as src:
@@ -68,9 +73,18 @@ def run(args: argparse.Namespace) -> int:
                           f"{1e3 * stats.latency_s:.1f} ms")
                     ok &= stats.rate_hz > 0
             except (MocapError, DriverError, OSError) as exc:
-                print(f"mocap        {uris.mocap}: NOT FOUND ({exc})")
+                print(f"mocap        {uris.mocap}: NOT FOUND: {_reason(exc)}")
                 ok = False
         finally:
             if emulator is not None:
                 emulator.close()
     return 0 if ok else 1
+
+
+def _reason(exc: Exception) -> str:
+    """The error without the device name the line already shows."""
+    text = str(exc)
+    for prefix in (getattr(exc, "uri", None), getattr(exc, "device", None)):
+        if isinstance(prefix, str) and text.startswith(f"{prefix}: "):
+            return text[len(prefix) + 2:]
+    return text

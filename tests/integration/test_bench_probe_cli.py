@@ -1,0 +1,24 @@
+"""``fasthex probe`` on a bench where nothing is plugged in: one line per device, no traceback."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+from config import find_config
+
+
+def test_that_probe_of_absent_hardware_prints_one_line_per_device() -> None:
+    # Test: the hardware template's placeholder ports and TEST-NET MoCap address
+    proc = subprocess.run([sys.executable, "-m", "groundstation", "probe",
+                           str(find_config("sessions", "hardware-template"))],
+                          capture_output=True, text=True, timeout=120)
+    lines = proc.stdout.splitlines()
+    # Assert
+    assert proc.returncode == 1
+    assert "Traceback" not in proc.stdout + proc.stderr
+    assert [line.split()[0] for line in lines] == ["flight-ctrl", "servo", "mocap"]
+    assert lines[0] == ("flight-ctrl  serial:///dev/ttyUSB0?baud=500000: NOT FOUND: no such "
+                        "device: is the adapter plugged in and powered? (`ls -l "
+                        "/dev/serial/by-id/` lists the USB-serial adapters)")
+    assert all(": NOT FOUND: " in line for line in lines)
