@@ -259,6 +259,8 @@ class ServoState:
     timeouts: int
     corrupt_replies: int
     reconnects: int
+    implausible_readings: int = 0
+    """Present Positions beyond the multi-turn range (±28672): dropped, never published."""
 
     @property
     def ok(self) -> bool:
@@ -309,7 +311,8 @@ class _S(IntEnum):
     RECONNECTS = 16
     ZERO = 17
     HEARTBEAT_T = 18
-    N = 19
+    IMPLAUSIBLE = 19
+    N = 20
 
 
 class _Mailbox:
@@ -321,7 +324,8 @@ class _Mailbox:
         nan = math.nan
         for i in range(int(_S.N)):
             self.state[i] = nan
-        for slot in (_S.SEQLOCK, _S.SEQ, _S.ERRORS, _S.TIMEOUTS, _S.CORRUPT, _S.RECONNECTS):
+        for slot in (_S.SEQLOCK, _S.SEQ, _S.ERRORS, _S.TIMEOUTS, _S.CORRUPT, _S.RECONNECTS,
+                     _S.IMPLAUSIBLE):
             self.state[slot] = 0.0
         self.state[_S.HEALTH] = float(ServoHealth.NOT_STARTED)
         self.goal[0] = nan
@@ -534,7 +538,7 @@ class _Worker:
         self.values[_S.SEQ] = 0.0
         self.values[_S.HEALTH] = float(ServoHealth.NOT_STARTED)
         self.values[_S.ERRORS] = 0.0
-        for slot in (_S.TIMEOUTS, _S.CORRUPT, _S.RECONNECTS):
+        for slot in (_S.TIMEOUTS, _S.CORRUPT, _S.RECONNECTS, _S.IMPLAUSIBLE):
             self.values[slot] = 0.0
         self.configured = False
         self.goal_rad = math.nan      # last rate-limited goal written
@@ -640,6 +644,11 @@ class _Worker:
         errors |= err
         t_s = time.monotonic()
         present = to_signed16(_u16(data, 0))
+        if not MULTI_TURN_MIN_STEPS <= present <= MULTI_TURN_MAX_STEPS:
+            # No MX-28 reports this in multi-turn mode: a corrupted reply. Keep the last
+            # reading (its age shows it) and count the drop.
+            self.values[_S.IMPLAUSIBLE] += 1
+            return ServoHealth.CORRUPT_REPLY, errors
         if self.last_present is not None:
             reach = TURN_JUMP_STEPS + TOP_SPEED_STEPS_S * (t_s - self.last_present_t)
             if abs(present - self.last_present) > reach:
@@ -918,7 +927,8 @@ class TiltServo:
             health=health, errors=ErrorBit(int(values[_S.ERRORS])),
             goal_tilt_rad=values[_S.GOAL], age_s=age, homed=values[_S.HOMED] == 1.0,
             timeouts=int(values[_S.TIMEOUTS]), corrupt_replies=int(values[_S.CORRUPT]),
-            reconnects=int(values[_S.RECONNECTS]))
+            reconnects=int(values[_S.RECONNECTS]),
+            implausible_readings=int(values[_S.IMPLAUSIBLE]))
 
     # -- rare requests (preflight, bench): these wait for the servo process
     def _request(self, timeout_s: float, *request: Any) -> Any:

@@ -232,7 +232,9 @@ class LinkStats:
     malformed: int
     """Wrong length or unknown command."""
     implausible: int
-    """Values outside the sensor range (dropped)."""
+    """Frames with a value outside what the hardware can produce, dropped: IMU beyond full
+    scale (or an implausible jump), spin rate, current or throttle beyond the BL-Ctrl's range,
+    battery voltage above any pack."""
     seq_rejected: int
     """IMU samples dropped because their sequence number did not fit."""
     resyncs: int
@@ -278,7 +280,15 @@ class FlightCtrlConfig:
     sample): it catches the gross corruptions (high bits of the high byte)."""
     max_gyro_rad_s: float = 17.5
     """Gyro full scale (±1000 °/s); larger readings are corrupted and dropped."""
+    max_accel_m_s2: float = 78.5
+    """Accelerometer full scale (±8 g); larger readings are corrupted and dropped."""
     max_battery_v: float = 60.0
+    """Above any pack the BL-Ctrls take (a 12S pack is 50.4 V charged); dropped."""
+    max_motor_speed_hz: float = mkm.MAX_SPIN_HZ
+    """A measured spin rate above this is beyond the BL-Ctrl's range: the ``M`` frame is
+    dropped (a corrupted half period of 1 µs would read as 500 kHz)."""
+    max_motor_current_a: float = 60.0
+    """Above what a BL-Ctrl 2.0 can carry (35 A continuous, 40 A peak) with margin."""
 
     def __post_init__(self) -> None:
         if len(self.spin_directions) != self.n_motors or any(
@@ -291,6 +301,10 @@ class FlightCtrlConfig:
                 raise ConfigValueError(name, f"{rate} outside 0..2000 Hz")
         if not 0.0 < self.min_rate_fraction <= 1.0:
             raise ConfigValueError("min_rate_fraction", "must be in (0, 1]")
+        for name in ("max_gyro_rad_s", "max_accel_m_s2", "max_battery_v", "max_motor_speed_hz",
+                     "max_motor_current_a"):
+            if not 0.0 < getattr(self, name) < math.inf:
+                raise ConfigValueError(name, "must be a finite limit > 0")
 
 
 # ------------------------------------------------------------------------------------ streams
@@ -779,6 +793,20 @@ class FlightCtrl:
             if self._lost is not None:
                 return
 
+    def feed(self, data: bytes, t_ns: int | None = None) -> None:
+        """Process bytes as if they had just been read from the port (arrival ``t_ns``, default
+        the clock's now): replaying a recording, or fuzzing the receive path in process.
+        Never raises for any content; what does not decode is counted in :meth:`link_stats`."""
+        if not data:
+            return
+        arrival = self._clock() if t_ns is None else t_ns
+        with self._cond:
+            if self._listen_stock:
+                for frame in self._stock.feed(data):
+                    self._on_stock(frame)
+            for raw in self._tk3.feed(data):
+                self._on_message(raw, arrival)
+
     def _read_once(self, timeout_s: float | None = None) -> None:
         """One transport read (waiting up to ``timeout_s``, None: the transport's read timeout)
         and its frames."""
@@ -788,15 +816,7 @@ class FlightCtrl:
             if not self._stop.is_set():
                 self._mark_lost(exc)
             return
-        if not data:
-            return
-        t_ns = self._clock()
-        with self._cond:
-            if self._listen_stock:
-                for frame in self._stock.feed(data):
-                    self._on_stock(frame)
-            for raw in self._tk3.feed(data):
-                self._on_message(raw, t_ns)
+        self.feed(data)
 
     def _on_message(self, raw: bytes, t_ns: int) -> None:
         """Decode and file one tk3 message (reader thread, ``_cond`` held)."""
@@ -810,7 +830,7 @@ class FlightCtrl:
         elif isinstance(msg, mkm.MotorMessage):
             self._on_motor(msg, t_ns)
         elif isinstance(msg, mkm.BatteryMessage):
-            if msg.voltage_v > self.config.max_battery_v:
+            if not msg.voltage_v <= self.config.max_battery_v:
                 self._implausible += 1
                 return
             self._battery = BatterySample(msg.seq, t_ns, msg.voltage_v)
@@ -831,7 +851,8 @@ class FlightCtrl:
     def _on_imu(self, msg: mkm.ImuMessage, t_ns: int) -> None:
         cfg = self.config
         limit = cfg.max_gyro_rad_s
-        if any(abs(g) > limit for g in msg.gyro_rad_s):
+        if any(not abs(g) <= limit for g in msg.gyro_rad_s) or any(
+                not abs(a) <= cfg.max_accel_m_s2 for a in msg.accel_m_s2):
             self._implausible += 1
             return
         last = self._last_imu_raw
@@ -856,8 +877,15 @@ class FlightCtrl:
         self._cond.notify_all()
 
     def _on_motor(self, msg: mkm.MotorMessage, t_ns: int) -> None:
-        if not 1 <= msg.motor_id <= self.config.n_motors:
+        cfg = self.config
+        if not 1 <= msg.motor_id <= cfg.n_motors:
             self._malformed += 1
+            return
+        if (not abs(msg.speed_hz) <= cfg.max_motor_speed_hz
+                or not msg.current_a <= cfg.max_motor_current_a
+                or not abs(msg.throttle_raw) <= mkm.THROTTLE_RAW_MAX):
+            # Beyond the BL-Ctrl's range: a corrupted frame (tk3 has no checksum).
+            self._implausible += 1
             return
         if msg.emergency:
             state = MotorState.EMERGENCY

@@ -60,7 +60,11 @@ from config.schema import ConfigValueError
 __all__ = [
     "BOARD_MESSAGES",
     "HALF_PERIOD_SLOWEST",
+    "MAX_SPIN_HZ",
+    "MAX_STREAM_PERIOD_US",
     "MIN_SPIN_HZ",
+    "MIN_STREAM_PERIOD_US",
+    "THROTTLE_RAW_MAX",
     "BatteryMessage",
     "Beep",
     "BoardMessage",
@@ -105,6 +109,16 @@ HALF_PERIOD_SLOWEST = 32767
 MIN_SPIN_HZ = 1e6 / 65535
 """Below this spin rate (≈15.26 Hz) the half period does not fit: the sentinel is sent."""
 _HALF_PERIOD_NUM = 500_000.0  # 1e6 / 2: half period in µs of a rotation at 1 Hz
+MAX_SPIN_HZ = 500.0
+"""Fastest spin rate a BL-Ctrl can report or be held to (30 000 rpm; half period 1000 µs).
+The FAST-Hex propellers top out near 102 Hz and hobby outrunners near 300 Hz: a faster reading
+is a corrupted frame, never a motor."""
+THROTTLE_RAW_MAX = 1023
+"""Open-loop throttle full scale (100 %); ``|throttle| > 1023`` cannot come from a BL-Ctrl."""
+MIN_STREAM_PERIOD_US = 500
+"""Shortest stream period the board supports: 2 kHz, the top rate of ``i`` (tk3 §4.2)."""
+MAX_STREAM_PERIOD_US = 1_000_000
+"""Longest stream period the board keeps: 1 s (the 1 Hz battery stream of the LAAS host)."""
 
 
 class MalformedMessageError(ValueError):

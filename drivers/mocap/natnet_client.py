@@ -22,6 +22,12 @@ the models changed, MODELDEF is requested again.
 
 Timestamps: a sample's ``t_ns`` is the arrival time on the injected clock minus
 (transmit - mid-exposure) / HighResClockFrequency minus the configured network delay.
+
+Plausibility (:class:`~drivers.mocap.pose.PoseLimits`, ``limits``): a frame whose reported
+latency is outside 0..1 s is dropped whole; a tracked pose that is non-finite, farther than
+``max_range_m`` (100 m) from the world origin or has a wire quaternion far from unit norm is
+dropped. Both are counted (``stats().implausible_samples``) and the previous sample stays the
+latest. :meth:`NatNetClient.feed_datagram` runs the receive path in process (fuzzing, replay).
 """
 
 from __future__ import annotations
@@ -45,6 +51,7 @@ from drivers.mocap.pose import (
     NAN4,
     FrameWaits,
     MocapConnectError,
+    PoseLimits,
     PoseSample,
     StreamMonitor,
     TrackingStatus,
@@ -70,6 +77,7 @@ class NatNetConfig:
     keepalive_period_s: float = 1.0
     connect_timeout_s: float = 3.0
     frames: FrameConfig = field(default_factory=FrameConfig)
+    limits: PoseLimits = field(default_factory=PoseLimits)
 
     def __post_init__(self) -> None:
         if self.mode not in ("unicast", "multicast"):
@@ -303,6 +311,11 @@ class NatNetClient(FrameWaits):
         finally:
             sel.close()
 
+    def feed_datagram(self, data: bytes, addr: tuple[str, int]) -> None:
+        """Handle one datagram as if it had arrived from ``addr`` (in process: fuzzing, replay,
+        tests). Never raises for any content."""
+        self._on_datagram(data, addr)
+
     def _on_datagram(self, data: bytes, addr: tuple[str, int]) -> None:
         """Handle one datagram. Never raises for any content."""
         if addr[0] != self.config.server_ip:
@@ -339,34 +352,51 @@ class NatNetClient(FrameWaits):
             self._response = msg
 
     def _sample(self, rb: natnet.RigidBodyData | None, body_id: int, frame: int,
-                rx_t_ns: int, t_ns: int, latency_s: float) -> PoseSample:
+                rx_t_ns: int, t_ns: int, latency_s: float) -> PoseSample | None:
+        """The world-frame sample of one rigid body; None if its pose is implausible."""
         name = self._names_by_id.get(body_id, "")
         if rb is None:
             return PoseSample(t_ns, rx_t_ns, frame, body_id, name, TrackingStatus.MISSING,
                               NAN3, NAN4, latency_s, math.nan)
-        if rb.tracking_valid:
-            try:
-                pos, q = self._transform.to_world(rb.pos, rb.q_xyzw)
-            except ValueError:
-                pos = NAN3
-            if all(math.isfinite(c) for c in pos):
-                return PoseSample(t_ns, rx_t_ns, frame, body_id, name, TrackingStatus.OK,
-                                  pos, q, latency_s, rb.mean_error_m)
-        return PoseSample(t_ns, rx_t_ns, frame, body_id, name, TrackingStatus.INVALID,
-                          NAN3, NAN4, latency_s, rb.mean_error_m)
+        if not rb.tracking_valid:
+            return PoseSample(t_ns, rx_t_ns, frame, body_id, name, TrackingStatus.INVALID,
+                              NAN3, NAN4, latency_s, rb.mean_error_m)
+        limits = self.config.limits
+        if not limits.wire_quat_ok(rb.q_xyzw) or not 0.0 <= rb.mean_error_m <= \
+                limits.max_range_m:
+            return None
+        try:
+            pos, q = self._transform.to_world(rb.pos, rb.q_xyzw)
+        except ValueError:
+            return None
+        if not limits.position_ok(pos):
+            return None
+        return PoseSample(t_ns, rx_t_ns, frame, body_id, name, TrackingStatus.OK,
+                          pos, q, latency_s, rb.mean_error_m)
 
     def _on_frame(self, frame: natnet.FrameOfData, rx_t_ns: int) -> None:
         info = self._server_info
-        latency_s = frame.latency_s(info.high_res_clock_hz if info else 0) \
-            + self.config.network_delay_s
+        clock_hz = info.high_res_clock_hz if info else 0
+        latency_s = frame.latency_s(clock_hz)
+        if (clock_hz > 0 and frame.transmit_ticks < frame.camera_mid_exposure_ticks) \
+                or not self.config.limits.latency_ok(latency_s):
+            # Sent before it was exposed, or more than a second late: the stamps are wrong,
+            # so would be the capture time of every pose in it.
+            self.monitor.count_implausible()
+            return
+        latency_s += self.config.network_delay_s
         t_ns = rx_t_ns - round(latency_s * 1e9)
-        self.monitor.on_frame(frame.frame_number, rx_t_ns, latency_s)
         bid = self._body_id
         main = None
         if bid is not None:
             # Only the configured body is converted here; others on demand (latest_of).
             rb = next((b for b in frame.rigid_bodies if b.body_id == bid), None)
             main = self._sample(rb, bid, frame.frame_number, rx_t_ns, t_ns, latency_s)
+            if main is None:
+                self.monitor.count_implausible()
+                return
+        self.monitor.on_frame(frame.frame_number, rx_t_ns, latency_s)
+        if main is not None:
             self.monitor.on_sample(main)
         with self._cond:
             self._last_frame = frame
@@ -384,8 +414,8 @@ class NatNetClient(FrameWaits):
         return self._latest
 
     def latest_of(self, name: str) -> PoseSample | None:
-        """Any defined rigid body in the newest frame, by name (None if not defined or no
-        frame yet)."""
+        """Any defined rigid body in the newest frame, by name (None if not defined, no frame
+        yet, or its pose is implausible)."""
         with self._cond:
             ids = self._models.body_ids_by_name() if self._models else {}
             frame, times = self._last_frame, self._last_frame_times

@@ -7,6 +7,13 @@ receive time minus the latency the server reports (NatNet >= 3.0), minus a confi
 network delay. When the body is not tracked in the newest frame (tracking-valid flag cleared,
 body missing from the frame) the sample says so (``valid`` False, position and quaternion NaN):
 a stale pose is never handed out as current.
+
+A pose no rigid body can have is *dropped* at the device, never handed out, and counted
+(:attr:`MocapStats.implausible_samples`): a non-finite position or quaternion, a position
+farther from the world origin than the workspace (:attr:`PoseLimits.max_range_m`, 100 m by
+default), a wire quaternion whose norm is far from 1 (servers send unit quaternions; a
+corrupted float is not one), or a reported latency outside 0..1 s (the stamps are wrong, so is
+the capture time). The latest sample then stays the previous one and ages.
 """
 
 from __future__ import annotations
@@ -20,6 +27,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
+from config.schema import ConfigValueError
 from drivers.mocap.frames import Quat, Vec3
 
 NAN3: Vec3 = (math.nan, math.nan, math.nan)
@@ -56,6 +64,35 @@ class PoseSample:
         return self.status is TrackingStatus.OK
 
 
+@dataclass(frozen=True)
+class PoseLimits:
+    """What a MoCap pose can physically be. Loadable from YAML (``config.schema``)."""
+
+    max_range_m: float = 100.0
+    """Workspace radius around the world origin; a pose farther away is dropped."""
+    max_quat_norm_error: float = 0.05
+    """Largest ``| |q| - 1 |`` of the wire quaternion (float32 rounding is ~1e-7)."""
+    max_latency_s: float = 1.0
+    """Largest plausible server-reported latency (a MoCap chain takes a few ms)."""
+
+    def __post_init__(self) -> None:
+        for key in ("max_range_m", "max_quat_norm_error", "max_latency_s"):
+            value = getattr(self, key)
+            if not 0.0 < value < math.inf:
+                raise ConfigValueError(key, f"must be a finite limit > 0, got {value!r}")
+
+    def latency_ok(self, latency_s: float) -> bool:
+        return 0.0 <= latency_s <= self.max_latency_s
+
+    def wire_quat_ok(self, q: tuple[float, float, float, float]) -> bool:
+        n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+        return abs(n - 1.0) <= self.max_quat_norm_error  # False for NaN
+
+    def position_ok(self, pos_w_m: Vec3) -> bool:
+        r2 = pos_w_m[0] * pos_w_m[0] + pos_w_m[1] * pos_w_m[1] + pos_w_m[2] * pos_w_m[2]
+        return r2 <= self.max_range_m * self.max_range_m  # False for NaN, inf
+
+
 @dataclass(frozen=True, slots=True)
 class MocapStats:
     """Stream health of one MoCap device at ``now_ns``."""
@@ -69,6 +106,7 @@ class MocapStats:
     rate_hz: float  # measured over the last ``window`` frames; 0 before two frames
     age_s: float  # now - capture time of the newest valid sample; inf if none
     latency_s: float  # of the newest frame; NaN if unknown
+    implausible_samples: int = 0  # poses or frames outside PoseLimits, dropped
 
 
 @runtime_checkable
@@ -114,12 +152,17 @@ class StreamMonitor:
         self.invalid_samples = 0
         self.malformed_packets = 0
         self.foreign_packets = 0
+        self.implausible_samples = 0
         self._last_valid_t_ns: int | None = None
         self._latency_s = math.nan
 
     def count_malformed(self) -> None:
         with self._lock:
             self.malformed_packets += 1
+
+    def count_implausible(self) -> None:
+        with self._lock:
+            self.implausible_samples += 1
 
     def count_foreign(self) -> None:
         with self._lock:
@@ -159,7 +202,8 @@ class StreamMonitor:
                 else (now - self._last_valid_t_ns) * 1e-9
             return MocapStats(self.frames_received, self.frames_dropped, self.frame_jumps,
                               self.invalid_samples, self.malformed_packets,
-                              self.foreign_packets, rate, age, self._latency_s)
+                              self.foreign_packets, rate, age, self._latency_s,
+                              self.implausible_samples)
 
 
 class FrameWaits:

@@ -2,18 +2,19 @@
 
 Forms (options are query parameters; defaults in brackets):
 
-``natnet://SERVER[:COMMAND_PORT]?local=IP&mode=unicast|multicast&data_port=N&group=IP&body=NAME&version=X.Y&up=y|z&units=m|mm&delay_ms=F``
+``natnet://SERVER[:COMMAND_PORT]?local=IP&mode=unicast|multicast&data_port=N&group=IP&body=NAME&version=X.Y&up=y|z&units=m|mm&delay_ms=F&range_m=F``
     OptiTrack Motive. ``SERVER`` is the Motive PC, ``COMMAND_PORT`` [1510]; ``local`` is this
     PC's address on the MoCap network [127.0.0.1]; ``mode`` [unicast]; ``data_port`` [1511] and
     ``group`` [239.255.42.99] for multicast; ``body`` the rigid-body name [the first defined];
     ``version`` a bitstream to request (unicast only) [the server's]; ``up`` the streaming up
-    axis [y]; ``units`` [m]; ``delay_ms`` the network delay added to the reported latency [0].
+    axis [y]; ``units`` [m]; ``delay_ms`` the network delay added to the reported latency [0];
+    ``range_m`` the workspace radius beyond which a pose is dropped as implausible [100].
     Example: ``natnet://127.0.0.1?local=127.0.0.1&mode=unicast&body=fasthex``.
 
-``vrpn://TRACKER@HOST[:PORT]?sensor=N&up=y|z&units=m|mm&latency_ms=F&stale_ms=F``
+``vrpn://TRACKER@HOST[:PORT]?sensor=N&up=y|z&units=m|mm&latency_ms=F&stale_ms=F&range_m=F``
     A VRPN tracker (Vicon Tracker, Motive, QTM). ``PORT`` [3883]; ``sensor`` [0]; ``up`` [z];
     ``units`` [m]; ``latency_ms`` the system latency to subtract [0]; ``stale_ms`` after which
-    a silent tracker is reported missing [50]. Example: ``vrpn://Tracker0@127.0.0.1:3883``.
+    a silent tracker is reported missing [50]; ``range_m`` as for NatNet [100]. Example: ``vrpn://Tracker0@127.0.0.1:3883``.
 """
 
 from __future__ import annotations
@@ -25,11 +26,13 @@ from urllib.parse import parse_qs, urlsplit
 from config.schema import ConfigValueError
 from drivers.mocap.frames import FrameConfig
 from drivers.mocap.natnet_client import NatNetClient, NatNetConfig
+from drivers.mocap.pose import PoseLimits
 from drivers.mocap.vrpn_client import VrpnClient, VrpnConfig
 
 NATNET_FORM = ("natnet://SERVER[:PORT]?local=IP&mode=unicast|multicast&data_port=N&group=IP"
-               "&body=NAME&version=X.Y&up=y|z&units=m|mm&delay_ms=F")
-VRPN_FORM = "vrpn://TRACKER@HOST[:PORT]?sensor=N&up=y|z&units=m|mm&latency_ms=F&stale_ms=F"
+               "&body=NAME&version=X.Y&up=y|z&units=m|mm&delay_ms=F&range_m=F")
+VRPN_FORM = ("vrpn://TRACKER@HOST[:PORT]?sensor=N&up=y|z&units=m|mm&latency_ms=F&stale_ms=F"
+             "&range_m=F")
 
 
 class MocapUriError(ValueError):
@@ -49,13 +52,20 @@ def _frames(opts: dict[str, str], default_up: str) -> FrameConfig:
                        units=opts.get("units", "m"))  # type: ignore[arg-type]
 
 
+def _limits(opts: dict[str, str]) -> PoseLimits:
+    if "range_m" not in opts:
+        return PoseLimits()
+    return PoseLimits(max_range_m=float(opts["range_m"]))
+
+
 def parse_uri(uri: str) -> NatNetConfig | VrpnConfig:
     """Parse a ``natnet://`` or ``vrpn://`` URI. Raises :class:`MocapUriError`."""
     parts = urlsplit(uri)
     try:
         if parts.scheme == "natnet":
             opts = _options(parts.query, {"local", "mode", "data_port", "group", "body",
-                                          "version", "up", "units", "delay_ms"}, uri,
+                                          "version", "up", "units", "delay_ms", "range_m"},
+                            uri,
                             NATNET_FORM)
             if not parts.hostname:
                 raise MocapUriError(f"{uri}: no server address; expected {NATNET_FORM}")
@@ -68,10 +78,10 @@ def parse_uri(uri: str) -> NatNetConfig | VrpnConfig:
                 multicast_group=opts.get("group", d.multicast_group),
                 body=opts.get("body", ""), version=opts.get("version", ""),
                 network_delay_s=float(opts.get("delay_ms", 0.0)) / 1000.0,
-                frames=_frames(opts, "y"))
+                frames=_frames(opts, "y"), limits=_limits(opts))
         if parts.scheme == "vrpn":
-            opts = _options(parts.query, {"sensor", "up", "units", "latency_ms", "stale_ms"},
-                            uri, VRPN_FORM)
+            opts = _options(parts.query, {"sensor", "up", "units", "latency_ms", "stale_ms",
+                                          "range_m"}, uri, VRPN_FORM)
             if not parts.username or not parts.hostname:
                 raise MocapUriError(f"{uri}: needs TRACKER@HOST; expected {VRPN_FORM}")
             d2 = VrpnConfig()
@@ -80,7 +90,7 @@ def parse_uri(uri: str) -> NatNetConfig | VrpnConfig:
                 sensor=int(opts.get("sensor", 0)),
                 latency_s=float(opts.get("latency_ms", 0.0)) / 1000.0,
                 stale_after_s=float(opts.get("stale_ms", d2.stale_after_s * 1000)) / 1000.0,
-                frames=_frames(opts, "z"))
+                frames=_frames(opts, "z"), limits=_limits(opts))
     except (ConfigValueError, ValueError) as exc:
         if isinstance(exc, MocapUriError):
             raise

@@ -22,6 +22,7 @@ Incremental: :class:`VrpnStreamParser` takes whatever ``recv()`` returned.
 from __future__ import annotations
 
 import enum
+import socket
 import struct
 from dataclasses import dataclass
 
@@ -128,10 +129,14 @@ def encode_lob(client_ip: str, tcp_port: int) -> bytes:
 def decode_lob(data: bytes) -> tuple[str, int]:
     """UDP connection request -> (client ip, tcp port). Raises VrpnDecodeError."""
     try:
-        ip, port = data.split(b"\0", 1)[0].decode("ascii").split()
-        return ip, int(port)
-    except (UnicodeDecodeError, ValueError) as exc:
+        ip, port_text = data.split(b"\0", 1)[0].decode("ascii").split()
+        port = int(port_text)
+        socket.inet_aton(ip)
+    except (UnicodeDecodeError, ValueError, OSError) as exc:
         raise VrpnDecodeError(f"bad connection request {data[:40]!r}") from exc
+    if not 1 <= port <= 65535:
+        raise VrpnDecodeError(f"connection request names port {port}")
+    return ip, port
 
 
 class VrpnStreamParser:

@@ -17,6 +17,12 @@ VRPN carries no frame number, no latency and no validity flag. Hence:
 - a body the server stops reporting (occluded) becomes a ``MISSING`` sample once its newest
   report is older than ``stale_after_s``: the stale pose is never returned as current.
 
+A report with an all-zero quaternion is a body the server lost (``INVALID``); any other report
+that is non-finite, farther than ``limits.max_range_m`` (100 m) from the world origin
+or has a quaternion far from unit norm is dropped and counted
+(``stats().implausible_samples``; :class:`~drivers.mocap.pose.PoseLimits`), never handed out.
+:meth:`VrpnClient.feed_stream` runs the receive path on bytes in process (fuzzing, replay).
+
 Default axes are Z-up metres (Vicon Tracker, QTM); set ``frames.up_axis: y`` for Motive's
 default Y-up export.
 """
@@ -39,6 +45,7 @@ from drivers.mocap.pose import (
     NAN4,
     FrameWaits,
     MocapConnectError,
+    PoseLimits,
     PoseSample,
     StreamMonitor,
     TrackingStatus,
@@ -59,8 +66,11 @@ class VrpnConfig:
     stale_after_s: float = 0.05
     connect_timeout_s: float = 3.0
     frames: FrameConfig = field(default_factory=lambda: FrameConfig(up_axis="z"))
+    limits: PoseLimits = field(default_factory=PoseLimits)
 
     def __post_init__(self) -> None:
+        if not self.latency_s <= self.limits.max_latency_s:
+            raise ConfigValueError("latency_s", f"must be <= {self.limits.max_latency_s} s")
         if not self.tracker:
             raise ConfigValueError("tracker", "must name the tracker (e.g. Tracker0)")
         if not 1 <= self.port <= 65535:
@@ -172,14 +182,22 @@ class VrpnClient(FrameWaits):
             if not chunk:
                 self._reset()
                 continue
-            try:
-                msgs = self._parser.feed(chunk)
-            except vrpn.VrpnDecodeError as exc:
-                self.monitor.count_malformed()
-                log.warning("%s: stream corrupt (%s); reconnecting", self.config.name, exc)
+            if not self.feed_stream(chunk):
                 self._reset()
-                continue
-            self._handle(msgs)
+
+    def feed_stream(self, chunk: bytes) -> bool:
+        """Handle bytes received on the connection (in process: fuzzing, replay, tests).
+        False when the stream is corrupt: it is counted and the parser starts over (the
+        connection must be re-opened). Never raises for any content."""
+        try:
+            msgs = self._parser.feed(chunk)
+        except vrpn.VrpnDecodeError as exc:
+            self.monitor.count_malformed()
+            log.warning("%s: stream corrupt (%s); reconnecting", self.config.name, exc)
+            self._parser = vrpn.VrpnStreamParser()
+            return False
+        self._handle(msgs)
+        return True
 
     def _reset(self) -> None:
         if self._sock is not None:
@@ -217,17 +235,23 @@ class VrpnClient(FrameWaits):
         rx = self._clock()
         lat = self.config.latency_s
         t_ns = rx - round(lat * 1e9)
+        limits = self.config.limits
+        status = TrackingStatus.OK
+        pos, q = NAN3, NAN4
+        if report.q_xyzw == (0.0, 0.0, 0.0, 0.0):
+            status = TrackingStatus.INVALID  # how some servers report a body they lost
+        else:
+            if limits.wire_quat_ok(report.q_xyzw):
+                try:
+                    pos, q = self._transform.to_world(report.pos, report.q_xyzw)
+                except ValueError:
+                    pos = NAN3
+            if not limits.position_ok(pos):
+                # VRPN has no validity flag: a pose no body can have is a broken report.
+                self.monitor.count_implausible()
+                return
         self._frames_seen += 1
         self.monitor.on_frame(None, rx, lat)
-        status = TrackingStatus.OK
-        try:
-            pos, q = self._transform.to_world(report.pos, report.q_xyzw)
-        except ValueError:
-            status = TrackingStatus.INVALID
-        if status is TrackingStatus.OK and not all(math.isfinite(c) for c in pos):
-            status = TrackingStatus.INVALID
-        if status is not TrackingStatus.OK:
-            pos, q = NAN3, NAN4
         sample = PoseSample(t_ns, rx, self._frames_seen, report.sensor, self.config.tracker,
                             status, pos, q, lat, math.nan)
         self.monitor.on_sample(sample)

@@ -22,7 +22,11 @@ Modelled:
 
 Emulator choices where the manual is silent: a write to a read-only register, out of its range
 or to a locked EEPROM is ignored with the Range bit; a joint-mode goal outside CW..CCW is ignored
-with the Angle bit; a READ past the table is padded with zeros (Range bit).
+with the Angle bit; a READ past the table is padded with zeros (Range bit); a READ longer than
+a status packet can carry (more than 248 bytes: LEN would pass 250) is answered with the Range
+bit and no data. Any byte sequence is survived: what does not decode or cannot be applied is
+counted (:meth:`EmulatedMX28.input_stats`), never fatal to the serving thread;
+:meth:`EmulatedMX28.feed` hands bytes to the input side in process (fuzzing).
 
 Vehicle calls are made under the optional shared ``lock`` (the vehicle is not thread-safe).
 """
@@ -30,6 +34,7 @@ Vehicle calls are made under the optional shared ``lock`` (the vehicle is not th
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import termios
 import threading
@@ -68,6 +73,8 @@ from drivers.dynamixel.control_table import (
 from sim_backend.ptylink import PtyEndpoint
 from sim_backend.vehicle import EmulatedVehicle
 
+log = logging.getLogger(__name__)
+
 STEP_PERIOD_S = 0.002
 SPEED_WINDOW_S = 0.05
 """Present Speed is the mean speed over this much vehicle time."""
@@ -91,6 +98,24 @@ class Fault(Enum):
     """Answer with a wrong checksum."""
     LATE = "late"
     """Answer ``late_s`` after the instruction, later than the client's timeout."""
+
+
+@dataclass(frozen=True, slots=True)
+class InputStats:
+    """What the servo's input side dropped or refused."""
+
+    instructions: int
+    dropped_bytes: int
+    """Bytes outside any packet (noise, a broken header)."""
+    checksum_errors: int
+    rejected: int
+    """Instructions answered with an error bit (range, angle, instruction) and not applied."""
+    input_errors: int
+    """Instructions whose handling failed unexpectedly (logged); the servo kept serving."""
+
+    @property
+    def dropped_inputs(self) -> int:
+        return self.checksum_errors + self.rejected + self.input_errors
 
 
 @dataclass(frozen=True, slots=True)
@@ -177,6 +202,8 @@ class EmulatedMX28:
         self.late_s = 0.08
         self.replies_sent = 0
         self.instructions = 0
+        self.rejected_instructions = 0
+        self.input_errors = 0
         self.goal_log: deque[GoalRecord] = deque(maxlen=100_000)
         self.tilt_log: deque[tuple[float, float]] = deque(maxlen=200_000)
 
@@ -316,9 +343,35 @@ class EmulatedMX28:
                     self.wrong_baud_bytes += len(data)
                     data = b""
                 if data:
-                    for packet in self._parser.feed(data):
-                        self._schedule(self.handle(packet))
+                    self._feed_locked(data)
                 self._send_due()
+
+    def feed(self, data: bytes) -> list[bytes]:
+        """Handle bytes as if they came in on the pty; returns the status packets the servo
+        would send (faults applied, timing ignored). Never raises for any content."""
+        with self._mutex:
+            queued = len(self._replies)
+            self._feed_locked(data)
+            replies = [r for _, r in self._replies[queued:]]
+            del self._replies[queued:]
+            return replies
+
+    def _feed_locked(self, data: bytes) -> None:
+        for packet in self._parser.feed(data):
+            try:
+                reply = self.handle(packet)
+            except Exception:
+                # A servo does not die on a strange packet: count it and keep serving.
+                self.input_errors += 1
+                log.exception("emulated MX-28: instruction %r failed", packet)
+                continue
+            self._schedule(reply)
+
+    def input_stats(self) -> InputStats:
+        with self._mutex:
+            return InputStats(self.instructions, self._parser.dropped_bytes,
+                              self._parser.checksum_errors, self.rejected_instructions,
+                              self.input_errors)
 
     def _baud_matches(self, endpoint: PtyEndpoint) -> bool:
         if not self._model_baud:
@@ -569,10 +622,15 @@ class EmulatedMX28:
         return self._status(my_id, error, data) if wants_reply else None
 
     def _status(self, dxl_id: int, error: ErrorBit, data: bytes = b"") -> bytes:
+        if error & (ErrorBit.RANGE | ErrorBit.ANGLE_LIMIT | ErrorBit.INSTRUCTION):
+            self.rejected_instructions += 1
         bits = (error | self._condition_errors() | self._forced_errors) & 0x7F
         return p1.encode_status(dxl_id, int(bits), data)
 
     def _read_bytes(self, address: int, length: int) -> tuple[bytes, ErrorBit]:
+        if length + 2 > p1.MAX_LENGTH:
+            # The reply would not fit one status packet: refused, as out of range.
+            return b"", ErrorBit.RANGE
         # Always return `length` bytes: the SDK does not check the reply length.
         end = address + length
         data = bytes(self._table[address:min(end, TABLE_SIZE)])

@@ -4,14 +4,23 @@ Speaks the same bytes as the board, through the codecs of :mod:`drivers.mikrokop
 
 - **tk3 firmware** (default): answers ``?`` with ``?<firmware_id>`` (``mkfl1.8``), honours the
   stream periods ``i``/``m``/``b``/``c`` (µs, 0 = off) with an 8-bit sequence number per
-  stream, starts motors on ``g`` (state ``starting`` 0x10 for ``motor_start_s``, then
-  ``spinning`` 0x20 at the slowest speed until a ``w`` arrives), applies ``w`` spin rates to the
-  vehicle's rotors, stops on ``x``, and - as the BL firmware does - stops every running motor
-  and raises the ``emergency`` flag (0x80) when no ``w`` arrived within ``watchdog_s``.
+  stream (periods outside what the board supports, 500 µs .. 1 s, i.e. 1 Hz .. 2 kHz, are
+  clamped to that range and counted: a period of 1 µs cannot flood the link, nor one of
+  2^30 µs stall a lockstep flight), starts motors on ``g`` (state ``starting`` 0x10 for
+  ``motor_start_s``, then ``spinning`` 0x20 at the slowest speed until a ``w`` arrives),
+  applies ``w`` spin rates to the vehicle's rotors, stops on ``x``, and - as the BL firmware
+  does - stops every running motor and raises the ``emergency`` flag (0x80) when no ``w``
+  arrived within ``watchdog_s``.
   Motor-state ``M`` frames are sent for every motor each motor period.
 - **stock firmware** (``firmware="stock"``): ``#``-framed replies to ``v`` (VersionInfo), ``d``
   (DebugOut stream), ``c`` (Data3D stream), ``t`` (engine test, applied while disarmed) and
   ``b`` (ExternControl ack); it ignores tk3 frames, like a real stock board.
+
+Input side: any byte sequence is survived. Frames that do not decode, ``w`` frames with the
+wrong motor count, clamped periods and spin rates beyond the BL-Ctrl's range
+(:data:`drivers.mikrokopter.messages.MAX_SPIN_HZ`, held at that speed) are counted in
+:class:`EmulatorStats` (``dropped_inputs``). :meth:`EmulatedFlightCtrl.feed` hands bytes to
+the input side in process (fuzzing) exactly as the pty reader does.
 
 Clocks (``clock=``):
 
@@ -48,7 +57,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import IntEnum
 from pathlib import Path
-from typing import Literal
+from typing import Literal, TypeVar
 
 from config.schema import ConfigValueError
 from drivers.mikrokopter import framing_stock, framing_tk3
@@ -66,6 +75,8 @@ _MAX_STEP_NS = 2_000_000  # physics steps no longer than 2 ms
 _TX_BACKLOG_S = 0.05
 _EARTH_FIELD_W_T = (2.0e-5, 0.0, -4.3e-5)  # roughly mid-latitude Europe, world z up
 _MAX_SPEED_HZ_FOR_THROTTLE = 130.0
+_FASTEST_HALF_PERIOD_US = round(500_000 / mkm.MAX_SPIN_HZ)
+_T = TypeVar("_T")
 
 
 @dataclass(frozen=True, slots=True)
@@ -141,6 +152,20 @@ class EmulatorStats:
     watchdog_trips: int = 0
     lockstep_steps: int = 0
     freerun_entries: int = 0
+    frame_errors_received: int = 0
+    """Received frames the deframer dropped (aborted, truncated, oversize, bad escape or
+    checksum)."""
+    periods_clamped: int = 0
+    """Stream periods outside 500 µs .. 1 s, clamped into that range."""
+    spin_rates_clamped: int = 0
+    """``w`` values faster than the BL-Ctrl's top speed, held at the top speed."""
+    input_errors: int = 0
+    """Inputs whose handling failed unexpectedly (logged); the emulator keeps running."""
+
+    @property
+    def dropped_inputs(self) -> int:
+        """Received frames not applied as sent: undecodable, malformed or failed."""
+        return self.frame_errors_received + self.malformed_received + self.input_errors
 
 
 @dataclass(frozen=True, slots=True)
@@ -245,8 +270,18 @@ class EmulatedFlightCtrl:
         self.stop()
 
     def stats(self) -> EmulatorStats:
+        parsers = self._stock.stats.frame_errors + self._tk3.stats.frame_errors
         with self._stats_lock:
-            return dataclasses.replace(self._stats)
+            return dataclasses.replace(self._stats, frame_errors_received=parsers)
+
+    def feed(self, data: bytes) -> None:
+        """Handle bytes as if they had come in on the pty (same thread rules: call it only
+        while the emulator thread is not running). Never raises for any content."""
+        self._handle_input(data)
+
+    def stream_periods_us(self) -> dict[str, int]:
+        """The active stream periods by message letter (``I M B C`` tk3, ``D 3D`` stock), µs."""
+        return {k: v // 1000 for k, v in self._periods_ns.items()}
 
     def sim_time_s(self) -> float:
         return self._sim_ns / _NS
@@ -327,7 +362,7 @@ class EmulatedFlightCtrl:
         if self.config.firmware == "stock":
             for frame in self._stock.feed(data):
                 self._count("frames_received")
-                self._handle_stock(frame)
+                self._guarded(self._handle_stock, frame)
             return
         for raw in self._tk3.feed(data):
             self._count("frames_received")
@@ -336,7 +371,16 @@ class EmulatedFlightCtrl:
             except mkm.MalformedMessageError:
                 self._count("malformed_received")
                 continue
-            self._handle_tk3(msg)
+            self._guarded(self._handle_tk3, msg)
+
+    def _guarded(self, handler: Callable[[_T], None], item: _T) -> None:
+        """Run one input handler; a failure is logged and counted, the board keeps running
+        (a real Flight-Ctrl does not reboot on a strange frame)."""
+        try:
+            handler(item)
+        except Exception:
+            self._count("input_errors")
+            log.exception("emulated Flight-Ctrl: input %r failed", item)
 
     def _handle_tk3(self, msg: mkm.HostMessage) -> None:
         if isinstance(msg, mkm.SpinRates):
@@ -346,7 +390,7 @@ class EmulatedFlightCtrl:
         elif isinstance(msg, mkm.SetStreamPeriod):
             key = {mkm.Stream.IMU: "I", mkm.Stream.MOTOR: "M", mkm.Stream.BATTERY: "B",
                    mkm.Stream.MAG: "C"}[msg.stream]
-            self._set_period(key, msg.period_us * 1000)
+            self._set_period(key, self._supported_period_us(msg.period_us) * 1000)
             if key == "I" and msg.period_us and not self._freerun:
                 self._emit_due(self._sim_ns)  # lockstep: the first sample starts the exchange
         elif isinstance(msg, mkm.StartMotors):
@@ -366,6 +410,15 @@ class EmulatedFlightCtrl:
         elif isinstance(msg, mkm.Beep):
             pass
 
+    def _supported_period_us(self, period_us: int) -> int:
+        """The period the board runs for a requested one (0 = off), clamped to 500 µs .. 1 s."""
+        if period_us == 0:
+            return 0
+        clamped = max(mkm.MIN_STREAM_PERIOD_US, min(mkm.MAX_STREAM_PERIOD_US, period_us))
+        if clamped != period_us:
+            self._count("periods_clamped")
+        return clamped
+
     def _motor_indices(self, motor_id: int | None) -> range:
         if motor_id is None:
             return range(len(self._motors))
@@ -377,6 +430,10 @@ class EmulatedFlightCtrl:
         self._count("spin_commands")
         if len(msg.half_periods_us) == len(self._motors):
             for m, p in zip(self._motors, msg.half_periods_us, strict=True):
+                if 0 < abs(p) < _FASTEST_HALF_PERIOD_US:
+                    # Faster than a BL-Ctrl can spin: it runs at its top speed.
+                    p = _FASTEST_HALF_PERIOD_US if p > 0 else -_FASTEST_HALF_PERIOD_US
+                    self._count("spin_rates_clamped")
                 m.cmd_half_period = p if p != 0 else mkm.HALF_PERIOD_SLOWEST
             self._last_w_ns = self._sim_ns
             self._apply_rotors()
@@ -561,7 +618,7 @@ class EmulatedFlightCtrl:
             major, minor, patch = self.config.stock_version
             self._send_stock(mkm.VersionInfo(major, minor, 11, 0xA5, patch, (0, 0), 25, 255, 0))
         elif isinstance(msg, mkm.DebugRequest):
-            self._set_period("D", msg.interval_ms * 1_000_000)
+            self._set_period("D", msg.interval_ms * 1_000_000)  # u8 x 10 ms: 10 ms .. 2.55 s
         elif isinstance(msg, mkm.Data3DRequest):
             self._set_period("3D", msg.interval_ms * 1_000_000)
         elif isinstance(msg, mkm.EngineTest):

@@ -21,7 +21,11 @@ Two ways to run it:
   after advancing the vehicle; exactly the frames due by then are captured and sent.
 
 Every vehicle call is made under the shared ``lock`` (do not hold it when calling
-``publish_due``). The command port is always served by its own thread.
+``publish_due``). The command port is always served by its own thread, which survives any
+datagram: one that does not decode is answered UNRECOGNIZED_REQUEST, a CONNECT beyond
+``MAX_CLIENTS`` unicast clients is ignored, a handler failure is logged; all are counted
+(:attr:`EmulatorCounters.dropped_inputs`). :meth:`NatNetServer.handle_datagram` runs the
+command side in process (fuzzing).
 """
 
 from __future__ import annotations
@@ -122,6 +126,16 @@ class EmulatorCounters:
     occluded_frames: int = 0
     frame_jumps: int = 0
     malformed_requests: int = 0
+    refused_clients: int = 0  # CONNECT/KEEPALIVE beyond MAX_CLIENTS
+    input_errors: int = 0  # datagrams whose handling failed unexpectedly (logged)
+
+    @property
+    def dropped_inputs(self) -> int:
+        return self.malformed_requests + self.refused_clients + self.input_errors
+
+
+MAX_CLIENTS = 64
+"""Unicast clients served at once; more would let a flood of CONNECTs grow without bound."""
 
 
 class NatNetServer:
@@ -245,18 +259,29 @@ class NatNetServer:
                 continue
             except OSError:
                 return
-            try:
-                req = natnet.decode_request(data)
-            except natnet.NatNetDecodeError:
-                self.counters.malformed_requests += 1
-                self._reply(natnet.encode_unrecognized(), addr)
-                continue
+            self.handle_datagram(data, addr)
+
+    def handle_datagram(self, data: bytes, addr: tuple[str, int]) -> None:
+        """Serve one command datagram from ``addr``. Never raises for any content."""
+        try:
+            req = natnet.decode_request(data)
+        except natnet.NatNetDecodeError:
+            self.counters.malformed_requests += 1
+            self._reply(natnet.encode_unrecognized(), addr)
+            return
+        try:
             self._on_request(req, addr)
+        except Exception:
+            self.counters.input_errors += 1
+            log.exception("natnet emulator: request %r from %s failed", req, addr)
 
     def _on_request(self, req: natnet.ClientRequest, addr: tuple[str, int]) -> None:
         kind = req.message_id
         if kind in (natnet.MessageId.CONNECT, natnet.MessageId.KEEPALIVE):
             with self._clients_lock:
+                if addr not in self._clients and len(self._clients) >= MAX_CLIENTS:
+                    self.counters.refused_clients += 1
+                    return
                 self._clients[addr] = self._wall()
             if kind == natnet.MessageId.CONNECT:
                 self._reply(natnet.encode_server_info(self.server_info()), addr)

@@ -89,6 +89,9 @@ class VrpnServer:
         self._occluded_left = 0
         self.reports_sent = 0
         self.occluded_reports = 0
+        self.dropped_inputs = 0
+        """Connection requests that do not parse or name another host, corrupt client streams
+        (the connection is dropped) and inputs whose handling failed (logged)."""
 
     def __enter__(self) -> VrpnServer:
         self.start()
@@ -183,10 +186,26 @@ class VrpnServer:
         assert self._udp is not None
         try:
             data, source = self._udp.recvfrom(512)
+        except OSError:
+            return
+        self.handle_lob(data, source)
+
+    def handle_lob(self, data: bytes, source: tuple[str, int]) -> None:
+        """Serve one UDP connection request from ``source``. Never raises for any content."""
+        try:
+            self._call_back(data, source)
+        except Exception:
+            self.dropped_inputs += 1
+            log.exception("vrpn emulator: connection request from %s failed", source)
+
+    def _call_back(self, data: bytes, source: tuple[str, int]) -> None:
+        try:
             ip, port = vrpn.decode_lob(data)
-        except (OSError, vrpn.VrpnDecodeError):
+        except vrpn.VrpnDecodeError:
+            self.dropped_inputs += 1
             return
         if ip != source[0]:  # only call back the host that asked, never a third address
+            self.dropped_inputs += 1
             log.warning("vrpn emulator: ignoring request from %s to call %s", source[0], ip)
             return
         with self._conns_lock:
@@ -210,11 +229,23 @@ class VrpnServer:
             self._drop(conn)
             return
         try:
+            ok = self.handle_stream(conn, chunk)
+        except Exception:
+            self.dropped_inputs += 1
+            log.exception("vrpn emulator: client input failed")
+            ok = False
+        if not ok:
+            self._drop(conn)
+
+    def handle_stream(self, conn: _Conn, chunk: bytes) -> bool:
+        """Serve bytes a client sent on its connection; False when the stream is corrupt (the
+        caller drops the connection)."""
+        try:
             msgs = conn.parser.feed(chunk)
         except vrpn.VrpnDecodeError as exc:
+            self.dropped_inputs += 1
             log.warning("vrpn emulator: dropping client: %s", exc)
-            self._drop(conn)
-            return
+            return False
         if not conn.ready and conn.parser.peer_version:
             self._describe(conn)
         for m in msgs:
@@ -223,6 +254,12 @@ class VrpnServer:
                     conn.types[m.sender_id] = vrpn.decode_description(m.payload)
             elif conn.types.get(m.type_id) == vrpn.PING_TYPE:
                 self._send(conn, vrpn.encode_message(_SENDER_ID, _TYPE_PONG, b"", self._wall()))
+        return True
+
+    def connection_for(self, sock: socket.socket) -> _Conn:
+        """A client connection on ``sock`` as :meth:`handle_stream` takes it (in-process
+        fuzzing; it is not registered with the server)."""
+        return _Conn(sock)
 
     def _describe(self, conn: _Conn) -> None:
         t = self._wall()
