@@ -22,9 +22,11 @@ ATTITUDE / ATTITUDE_QUATERNION
 LOCAL_POSITION_NED
     position and velocity in NED (m, m/s).
 ODOMETRY
-    ``frame_id`` LOCAL_FRD (z down, x along the world x axis, which is not earth-aligned: the
-    frame MAVLink defines for this and the one MAVSDK's ``Odometry::MavFrame`` names
-    ``LocalFrd``), ``child_frame_id`` BODY_FRD: position, attitude quaternion,
+    ``frame_id`` ESTIM_NED (an estimate's local NED frame; world x taken as north),
+    ``child_frame_id`` BODY_NED (for velocities MAVLink defines it as body FRD). These two are
+    what MAVSDK maps: its ``Telemetry.Odometry.MavFrame`` knows UNDEF, BODY_NED, VISION_NED
+    and ESTIM_NED only, and reports the newer LOCAL_FRD / LOCAL_NED / BODY_FRD as UNDEF
+    (checked with MAVSDK 4.1.0). Position, attitude quaternion,
     velocity expressed in body FRD (the child frame, as MAVLink defines it), body rates;
     covariances unknown (first element NaN); ``estimator_type`` VIO-less MOCAP.
 ACTUATOR_OUTPUT_STATUS
@@ -52,6 +54,9 @@ from groundstation.operator import FlightPhase, SensorHealth, StatusEvent, Vehic
 
 M = mavlink2
 STATUSTEXT_LEN = 50
+#: MAV_FRAME 18, ESTIM_NED: deprecated in MAVLink (pymavlink's common calls it RESERVED_18), yet
+#: the only estimator frame MAVSDK's odometry maps (see ODOMETRY above)
+MAV_FRAME_ESTIM_NED = 18
 UINT16_MAX = 0xFFFF
 
 SENSOR_BITS: tuple[tuple[str, int], ...] = (
@@ -172,7 +177,7 @@ def odometry(tel: VehicleTelemetry) -> Any:
     v_body = rotate_inverse(q, world_to_ned(tel.vel_w_m_s))
     unknown = [math.nan] + [0.0] * 20
     return M.MAVLink_odometry_message(
-        time_usec(tel), M.MAV_FRAME_LOCAL_FRD, M.MAV_FRAME_BODY_FRD, p[0], p[1], p[2], list(q),
+        time_usec(tel), MAV_FRAME_ESTIM_NED, M.MAV_FRAME_BODY_NED, p[0], p[1], p[2], list(q),
         v_body[0], v_body[1], v_body[2], w[0], w[1], w[2], unknown, unknown, 0,
         M.MAV_ESTIMATOR_TYPE_MOCAP, 100)
 

@@ -1,9 +1,9 @@
 """Lockstep ``fasthex fly`` sessions commanded over MAVLink: secure by default, end to end.
 
 Each test runs the real CLI in a child process (``--json`` gives the summary and the link's
-counters) with a GCS peer on loopback: MAVProxy signed with the session's key, or a pymavlink
+counters) with a GCS peer on loopback: MAVProxy signed with the session's key, a pymavlink
 endpoint that plays the lab GCS and an attacker sending unsigned, wrongly signed, stale and
-replayed frames. Waiting is on messages and output lines with generous deadlines; nothing is
+replayed frames, or MAVSDK (its 4.x Python package runs the C++ library in-process, offline). Waiting is on messages and output lines with generous deadlines; nothing is
 timed.
 """
 
@@ -258,3 +258,57 @@ def test_that_an_unreadable_key_file_is_one_line_and_exit_2_before_anything_open
     assert len(lines) == 1 and "Traceback" not in proc.stderr
     assert "missing.key" in lines[0] and "cannot read signing key" in lines[0]
     assert not (tmp_path / "f.fhr").exists()
+
+
+def test_that_mavsdk_without_a_key_is_denied_a_land_and_then_sees_the_vehicle_disarmed_landed(
+        tmp_path: Path) -> None:
+    # MAVSDK 4.x (PyPI ``mavsdk``) wraps the C++ library in-process: no mavsdk_server, offline
+    from mavsdk import ComponentType, Configuration, Mavsdk
+    from mavsdk.plugins.action import Action, ActionError, ActionResult
+    from mavsdk.plugins.telemetry import LandedState, Odometry, Telemetry
+
+    # Fixture: MAVSDK as the GCS, listening; no key anywhere; the shared 11 s mission
+    session = write_session(tmp_path, hover_s=4.0, name="mavsdk-flight")
+    port = free_udp_port()
+    sdk = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
+    sdk.add_any_connection(f"udpin://127.0.0.1:{port}")
+    proc = start_fly(session, tmp_path / "f.fhr", port, env=_env_without_key())
+    in_air = threading.Event()
+    states: list[Any] = []
+    odometry: list[Any] = []
+    try:
+        system = sdk.first_autopilot(TIMEOUT_S)
+        assert system is not None, "MAVSDK never saw the vehicle"
+        telemetry, action = Telemetry(system), Action(system)
+
+        def on_landed(state: Any, _user: Any) -> None:
+            states.append(state)
+            if state == LandedState.IN_AIR:
+                in_air.set()
+
+        telemetry.subscribe_landed_state(on_landed)
+        telemetry.subscribe_odometry(lambda o, _u: odometry.append(o))
+        assert in_air.wait(TIMEOUT_S * 3), states
+        # Test: an unsigned land from a real GCS library
+        try:
+            action.land()
+            denied: Any = None
+        except ActionError as exc:
+            denied = exc.result
+        summary = _finish(proc)
+        # Assert: after the session, MAVSDK's view is disarmed and on the ground
+        armed_after, landed_after = telemetry.armed(), telemetry.landed_state()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        sdk.destroy()
+    assert denied == ActionResult.COMMAND_DENIED
+    assert summary["end_reason"] in ("mission complete", "touchdown")
+    assert summary["mavlink_refused_unsigned"] >= 1
+    assert armed_after is False
+    assert landed_after == LandedState.ON_GROUND
+    assert LandedState.IN_AIR in states and states[-1] == LandedState.ON_GROUND
+    # ODOMETRY's frame ids are ones MAVSDK maps (not UNDEF)
+    assert odometry and odometry[-1].frame_id == Odometry.MavFrame.ESTIM_NED
+    assert odometry[-1].child_frame_id == Odometry.MavFrame.BODY_NED

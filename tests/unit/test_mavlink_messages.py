@@ -66,7 +66,7 @@ def test_that_positions_and_velocities_are_ned_and_odometry_velocity_is_body_frd
     assert (lp.x, lp.y, lp.z) == pytest.approx((0.5, 0.2, -1.0))
     assert (lp.vx, lp.vy, lp.vz) == pytest.approx((0.1, -0.2, 0.3))
     od = _roundtrip(messages.odometry(TEL))
-    assert (od.frame_id, od.child_frame_id) == (M.MAV_FRAME_LOCAL_FRD, M.MAV_FRAME_BODY_FRD)
+    assert (od.frame_id, od.child_frame_id) == (18, M.MAV_FRAME_BODY_NED)  # ESTIM_NED
     assert od.time_usec == 12_345_000
     # |v| is frame independent; the body-frame velocity rotated back gives the NED one
     assert math.hypot(od.vx, od.vy, od.vz) == pytest.approx(math.hypot(0.1, 0.2, 0.3), rel=1e-5)
