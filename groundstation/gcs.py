@@ -48,6 +48,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from drivers.errors import DriverError
 from drivers.mavlink.config import MavlinkConfig
 from drivers.mavlink.signing import DEFAULT_KEY_ENV, SigningKeyError, load_signing_key
 from groundstation import operator as op
@@ -113,10 +114,11 @@ def gcs_options(uri: str, telemetry: Any, record_path: Path, *,
     """The link's options for a session (None when MAVLink is off). The key is resolved
     here, in the session's own process, so that a bad key file stops the session before any
     device opens; a key file named while MAVLink is off is still checked."""
-    key, source = resolve_key(cli_key_file, getattr(telemetry, "mavlink_key_file", None),
-                              environ)
-    if not uri:
+    session_file = getattr(telemetry, "mavlink_key_file", None)
+    if not uri:  # the files are still checked; the environment matters only with a link
+        resolve_key(cli_key_file, session_file, {})
         return None
+    key, source = resolve_key(cli_key_file, session_file, environ)
     return GcsOptions(uri=uri, key=key, key_source=source,
                       allow_unsigned=bool(getattr(telemetry, "mavlink_allow_unsigned", False)),
                       stats_path=str(stats_path(record_path)))
@@ -251,17 +253,25 @@ class SessionGcs:
 
 
 def start_gcs(options: GcsOptions, params: Any, status: Any, commands: Any,
-              events_path: str, echo_events: bool) -> SessionGcs:
+              events_path: str, echo_events: bool) -> SessionGcs | None:
     """The telemetry process's link: bridge up and serving, its security notice in the
-    events file (and on stderr when events are echoed)."""
-    gcs = SessionGcs(options, params, status, commands)
+    events file (and on stderr when events are echoed). A link that cannot open (a udpin
+    port in use) is one event line and no link: the flight record matters more."""
+    gcs: SessionGcs | None = None
+    try:
+        gcs = SessionGcs(options, params, status, commands)
+        lines = gcs.notices()
+    except (DriverError, OSError) as exc:
+        lines = [f"mavlink {options.uri}: WARNING no link: {exc}"]
     with open(events_path, "a", encoding="utf-8") as ev:
-        for line in gcs.notices():
+        for line in lines:
             ev.write(line + "\n")
-            gcs.bridge.post_event(line, op.Severity.WARNING if "WARNING" in line
-                                  else op.Severity.INFO)
+            if gcs is not None:
+                gcs.bridge.post_event(line, op.Severity.WARNING if "WARNING" in line
+                                      else op.Severity.INFO)
             if echo_events:
-                print(line, file=sys.stderr, flush=True)
+                with contextlib.suppress(OSError):
+                    print(line, file=sys.stderr, flush=True)
     return gcs
 
 

@@ -165,3 +165,27 @@ def test_that_allowing_unsigned_commands_is_announced_as_a_warning_event(tmp_pat
     finally:
         gcs.close()
     assert (tmp_path / "s.json").exists()
+
+
+def test_that_a_link_that_cannot_open_is_an_event_line_not_a_lost_record(tmp_path: Path) -> None:
+    import socket
+
+    from groundstation.configs import load_vehicle
+    from groundstation.gcs import start_gcs
+
+    events = tmp_path / "events.txt"
+    events.write_text("")
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        port = taken.getsockname()[1]
+        opts = GcsOptions(f"udpin:127.0.0.1:{port}", None, "", False, "")
+        gcs = start_gcs(opts, load_vehicle("fasthex"), _status(op.FlightPhase.PREFLIGHT),
+                        queue.Queue(), str(events), echo_events=False)
+    assert gcs is None
+    (line,) = events.read_text().splitlines()
+    assert f"udpin:127.0.0.1:{port}" in line and "no link" in line
+
+
+def test_that_the_environment_is_not_read_when_mavlink_is_off(tmp_path: Path) -> None:
+    assert gcs_options("", _Telemetry(), tmp_path / "f.fhr",
+                       environ={"FASTHEX_MAVLINK_KEY": " "}) is None
