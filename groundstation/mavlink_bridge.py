@@ -380,8 +380,8 @@ class MavlinkBridge:
             now = self._clock()
             try:
                 self.step(now)
-            except Exception:
-                log.exception("%s: bridge step failed", self._endpoint.name)
+            except Exception:  # e.g. a send the OS refuses: counted, logged once
+                self._handler_failed("step")
             wait = min(self.next_due_s(self._clock()), 0.05)
             if wait > 0:
                 self._endpoint.wait_readable(wait)
