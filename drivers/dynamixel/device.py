@@ -80,6 +80,7 @@ from drivers.dynamixel.control_table import (
     to_unsigned16,
 )
 from drivers.errors import DriverError, TransportUriError
+from drivers.transport import describe_open_error
 
 log = logging.getLogger(__name__)
 
@@ -374,7 +375,9 @@ class _Link:
         try:
             ok = port.openPort() and port.setBaudRate(self.target.baud)
         except Exception as exc:  # serial.SerialException, OSError, termios.error
-            raise ServoCommError(self.uri, f"cannot open: {exc}") from exc
+            err = getattr(exc, "errno", None)  # absent, no permission: one line with the fix
+            why = describe_open_error(self.target.port, err, str(exc)) if err else None
+            raise ServoCommError(self.uri, why or f"cannot open: {exc}") from exc
         if not ok:
             with contextlib.suppress(Exception):
                 port.closePort()

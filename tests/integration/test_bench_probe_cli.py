@@ -21,4 +21,17 @@ def test_that_probe_of_absent_hardware_prints_one_line_per_device() -> None:
     assert lines[0] == ("flight-ctrl  serial:///dev/ttyUSB0?baud=500000: NOT FOUND: no such "
                         "device: is the adapter plugged in and powered? (`ls -l "
                         "/dev/serial/by-id/` lists the USB-serial adapters)")
+    assert lines[1].endswith("?baud=1000000&id=1: NOT FOUND: no such device: is the adapter "
+                             "plugged in and powered? (`ls -l /dev/serial/by-id/` lists the "
+                             "USB-serial adapters)")
     assert all(": NOT FOUND: " in line for line in lines)
+
+
+def test_that_servo_status_on_an_absent_port_is_one_line_exit_2() -> None:
+    proc = subprocess.run([sys.executable, "-m", "groundstation", "servo", "status",
+                           "--session", str(find_config("sessions", "hardware-template"))],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert proc.stderr == ("fasthex: serial:///dev/ttyUSB1?baud=1000000&id=1: no such device: "
+                           "is the adapter plugged in and powered? (`ls -l /dev/serial/by-id/` "
+                           "lists the USB-serial adapters)\n")
