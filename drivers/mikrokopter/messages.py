@@ -62,6 +62,7 @@ __all__ = [
     "HALF_PERIOD_SLOWEST",
     "MAX_SPIN_HZ",
     "MAX_STREAM_PERIOD_US",
+    "MIN_MOTOR_PERIOD_US",
     "MIN_SPIN_HZ",
     "MIN_STREAM_PERIOD_US",
     "THROTTLE_RAW_MAX",
@@ -117,6 +118,9 @@ THROTTLE_RAW_MAX = 1023
 """Open-loop throttle full scale (100 %); ``|throttle| > 1023`` cannot come from a BL-Ctrl."""
 MIN_STREAM_PERIOD_US = 500
 """Shortest stream period the board supports: 2 kHz, the top rate of ``i`` (tk3 §4.2)."""
+MIN_MOTOR_PERIOD_US = 2000
+"""Shortest ``m`` period: 500 Hz. Each period sends one 11-byte ``M`` frame per motor, six of
+them 330 kbit/s on the 500 kbit/s line (tk3 §5); faster cannot leave the board."""
 MAX_STREAM_PERIOD_US = 1_000_000
 """Longest stream period the board keeps: 1 s (the 1 Hz battery stream of the LAAS host)."""
 

@@ -4,14 +4,14 @@ Speaks the same bytes as the board, through the codecs of :mod:`drivers.mikrokop
 
 - **tk3 firmware** (default): answers ``?`` with ``?<firmware_id>`` (``mkfl1.8``), honours the
   stream periods ``i``/``m``/``b``/``c`` (µs, 0 = off) with an 8-bit sequence number per
-  stream (periods outside what the board supports, 500 µs .. 1 s, i.e. 1 Hz .. 2 kHz, are
-  clamped to that range and counted: a period of 1 µs cannot flood the link, nor one of
-  2^30 µs stall a lockstep flight), starts motors on ``g`` (state ``starting`` 0x10 for
-  ``motor_start_s``, then ``spinning`` 0x20 at the slowest speed until a ``w`` arrives),
-  applies ``w`` spin rates to the vehicle's rotors, stops on ``x``, and - as the BL firmware
-  does - stops every running motor and raises the ``emergency`` flag (0x80) when no ``w``
-  arrived within ``watchdog_s``.
-  Motor-state ``M`` frames are sent for every motor each motor period.
+  stream (periods outside what the board supports, 500 µs .. 1 s, i.e. 1 Hz .. 2 kHz, and
+  at least 2 ms for the six-frame motor stream, are clamped to that range and counted: a
+  period of 1 µs cannot flood the link, nor one of 2^30 µs stall a lockstep flight), starts
+  motors on ``g`` (state ``starting`` 0x10 for ``motor_start_s``, then ``spinning`` 0x20 at
+  the slowest speed until a ``w`` arrives), applies ``w`` spin rates to the vehicle's rotors,
+  stops on ``x``, and - as the BL firmware does - stops every running motor and raises the
+  ``emergency`` flag (0x80) when no ``w`` arrived within ``watchdog_s``. Motor-state ``M``
+  frames are sent for every motor each motor period.
 - **stock firmware** (``firmware="stock"``): ``#``-framed replies to ``v`` (VersionInfo), ``d``
   (DebugOut stream), ``c`` (Data3D stream), ``t`` (engine test, applied while disarmed) and
   ``b`` (ExternControl ack); it ignores tk3 frames, like a real stock board.
@@ -390,7 +390,7 @@ class EmulatedFlightCtrl:
         elif isinstance(msg, mkm.SetStreamPeriod):
             key = {mkm.Stream.IMU: "I", mkm.Stream.MOTOR: "M", mkm.Stream.BATTERY: "B",
                    mkm.Stream.MAG: "C"}[msg.stream]
-            self._set_period(key, self._supported_period_us(msg.period_us) * 1000)
+            self._set_period(key, self._supported_period_us(msg.period_us, key) * 1000)
             if key == "I" and msg.period_us and not self._freerun:
                 self._emit_due(self._sim_ns)  # lockstep: the first sample starts the exchange
         elif isinstance(msg, mkm.StartMotors):
@@ -410,11 +410,13 @@ class EmulatedFlightCtrl:
         elif isinstance(msg, mkm.Beep):
             pass
 
-    def _supported_period_us(self, period_us: int) -> int:
-        """The period the board runs for a requested one (0 = off), clamped to 500 µs .. 1 s."""
+    def _supported_period_us(self, period_us: int, key: str) -> int:
+        """The period the board runs for a requested one (0 = off), clamped to 500 µs .. 1 s
+        (2 ms .. 1 s for the motor stream, one frame per motor each period)."""
         if period_us == 0:
             return 0
-        clamped = max(mkm.MIN_STREAM_PERIOD_US, min(mkm.MAX_STREAM_PERIOD_US, period_us))
+        shortest = mkm.MIN_MOTOR_PERIOD_US if key == "M" else mkm.MIN_STREAM_PERIOD_US
+        clamped = max(shortest, min(mkm.MAX_STREAM_PERIOD_US, period_us))
         if clamped != period_us:
             self._count("periods_clamped")
         return clamped

@@ -77,7 +77,7 @@ def test_that_random_and_mutated_bytes_never_raise_nor_deliver_impossible_values
     t = target
     seeds: list[bytes] = t.seeds  # type: ignore[attr-defined]
 
-    @settings(max_examples=120, deadline=None, derandomize=True, database=None,
+    @settings(max_examples=100, deadline=None, derandomize=True, database=None,
               suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
     @given(_inputs(seeds))
     def check(data: bytes) -> None:
@@ -143,6 +143,18 @@ def test_that_a_lockstep_stream_period_outside_the_board_range_is_clamped(
         assert emu.stats().periods_clamped == 1
     finally:
         drain.close()
+        emu.stop()
+
+
+def test_that_the_motor_stream_is_held_to_what_the_line_can_carry() -> None:
+    emu = EmulatedFlightCtrl(BenchVehicle(), config=FlightCtrlEmulatorConfig(clock="lockstep"))
+    try:
+        for stream in (mkm.Stream.MOTOR, mkm.Stream.BATTERY):
+            emu.feed(tk3.encode_frame(mkm.SetStreamPeriod(stream, 1).encode()))
+        # six 11-byte M frames per period: 500 Hz is 330 kbit/s of the 500 kbit/s line
+        assert emu.stream_periods_us() == {"M": mkm.MIN_MOTOR_PERIOD_US,
+                                           "B": mkm.MIN_STREAM_PERIOD_US}
+    finally:
         emu.stop()
 
 
