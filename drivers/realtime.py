@@ -22,7 +22,7 @@ import os
 import sys
 from pathlib import Path
 
-__all__ = ["apply_realtime_settings", "restore_default_settings", "settings_line"]
+__all__ = ["apply_realtime_settings", "lock_memory", "restore_default_settings", "settings_line"]
 
 _MCL_CURRENT, _MCL_FUTURE = 1, 2
 
@@ -67,7 +67,7 @@ def apply_realtime_settings(*, cpu: int | None = None, fifo_priority: int = 50,
     else:
         report["scheduler"] = "SCHED_OTHER"
     if lock_memory:
-        report["memory"] = _lock_memory()
+        report["memory"] = _mlockall()
     if freeze_gc:
         gc.collect()
         gc.freeze()
@@ -76,7 +76,14 @@ def apply_realtime_settings(*, cpu: int | None = None, fifo_priority: int = 50,
     return report
 
 
-def _lock_memory() -> str:
+def lock_memory() -> str:
+    """Lock every present and future page of the process in RAM (no page fault in a tick).
+    Call it before the device threads start: ``mlockall`` holds the process's memory map for
+    tens to hundreds of milliseconds, and every thread that touches a new page waits."""
+    return _mlockall()
+
+
+def _mlockall() -> str:
     if not sys.platform.startswith("linux"):
         return "not locked (not Linux)"
     try:

@@ -16,28 +16,31 @@ last 100 ms) and writes the events (transitions, faults, preflight results) next
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import json
 import logging
 import multiprocessing as mp
 import os
 import queue
-import signal
 import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
 from controller.missions import Mission
 from controller.params import VehicleParams
 from drivers.dynamixel.device import TiltServo, TiltServoConfig
+from drivers.errors import DriverError
 from drivers.mikrokopter.device import FlightCtrl, FlightCtrlConfig
 from drivers.mocap.natnet_client import NatNetClient
+from drivers.mocap.pose import MocapError
 from drivers.mocap.uri import open_pose_source
 from estimator.ukf import Ukf
 from groundstation.gcs import GcsOptions, gcs_options, start_gcs
@@ -45,15 +48,21 @@ from groundstation.gcs import summary_lines as mavlink_summary_lines
 from groundstation.loop import FlightLoop, LoopOptions, LoopResult
 from groundstation.record import RECORD_DTYPE, RecordWriter
 from groundstation.session_config import EmulatedBackend, HardwareBackend, SessionConfig
+from groundstation.signals import ignore_stop_signals, stop_signals_blocked
 from groundstation.telemetry import TelemetryRing
 from sim_backend.backend import SERVO_ZERO_OFFSET_STEPS
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 
 
 class SessionError(Exception):
     """The session could not start (a device, the emulator); printed without traceback."""
+
+
+class SessionInterruptedError(SessionError):
+    """A stop signal arrived while the session was starting: nothing was armed."""
 
 
 @dataclass
@@ -91,8 +100,8 @@ class EmulatorProcess:
     """The emulated vehicle in a child process; its devices' addresses once ready."""
 
     def __init__(self, cfg: EmulatedBackend, vehicle: str, start_pos_w_m: tuple[float, ...],
-                 link_dir: Path, corrupt_prob: float = 0.0, truth_path: Path | None = None
-                 ) -> None:
+                 link_dir: Path, corrupt_prob: float = 0.0, truth_path: Path | None = None,
+                 realtime_settings: bool = True) -> None:
         args = [sys.executable, "-m", "sim_backend.backend", "--vehicle", vehicle,
                 "--disturbances", cfg.disturbances, "--seed", str(cfg.seed),
                 "--clock", cfg.clock, "--link-dir", str(link_dir),
@@ -102,9 +111,14 @@ class EmulatorProcess:
             args += ["--fault", fault]
         if truth_path is not None:
             args += ["--truth", str(truth_path)]
+        args += ["--realtime-settings", "on" if realtime_settings else "off"]
+        # A session of its own: the terminal's SIGINT (sent to the whole foreground process
+        # group) and a SIGTERM/SIGHUP to our group never reach the emulated board, which the
+        # ground station stops in order after the landing (``close``).
         self.proc = subprocess.Popen(args, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                     stderr=None, text=True)
+                                     stderr=None, text=True, start_new_session=True)
         self.devices: dict[str, str] = {}
+        self.realtime_settings = ""  # what the emulator's real-time settings came to
         deadline = time.monotonic() + 60.0
         assert self.proc.stdout is not None
         while time.monotonic() < deadline:
@@ -115,6 +129,7 @@ class EmulatorProcess:
                                    f"(exit code {self.proc.poll()})")
             msg = json.loads(line)
             if msg.get("ready"):
+                self.realtime_settings = str(msg.get("realtime", ""))
                 return
             self.devices[msg["device"]] = msg["address"]
         self.close()
@@ -143,7 +158,7 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
     file (and stderr). Runs at a lower priority; the loop never waits for it."""
     with contextlib.suppress(OSError):
         os.nice(10)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the session ends us, not Ctrl-C
+    ignore_stop_signals()  # the session ends us (stop event or its death), not the terminal
     ring = TelemetryRing(RECORD_DTYPE, name=ring_name)
     writer = RecordWriter(record_path, metadata, keep_in_memory=False)
     pending_events: list[str] = []
@@ -177,7 +192,10 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
                 if gcs is not None:
                     pending_events.append(text)
                 if echo_events:
-                    print(text, file=sys.stderr, flush=True)
+                    try:
+                        print(text, file=sys.stderr, flush=True)
+                    except OSError:  # the terminal is gone (SIGHUP): the events file has it
+                        echo_events = False
             ev.flush()
             if gcs is not None and len(rows):
                 gcs.publish(rows[-1], pending_events)
@@ -204,7 +222,7 @@ class FlightSession:
     def __init__(self, cfg: SessionConfig, params: VehicleParams, mission: Mission, *,
                  record_path: Path, session_dir: Path | None = None,
                  echo_events: bool = True, corrupt_prob: float = 0.0,
-                 realtime_settings: bool = False,
+                 realtime_settings: bool | None = None,
                  scripted_requests: tuple[tuple[float, str], ...] = (),
                  dashboard: str | None = None, mavlink: str | None = None,
                  mavlink_key_file: str | None = None) -> None:
@@ -215,6 +233,7 @@ class FlightSession:
         self.events_path = record_path.with_suffix(record_path.suffix + ".events.txt")
         self.echo_events = echo_events
         self.corrupt_prob = corrupt_prob
+        #: None: on wherever the clock is real (hardware, realtime emulation), off in lockstep
         self.realtime_settings = realtime_settings
         self.scripted_requests = scripted_requests
         self.dashboard = dashboard or cfg.telemetry.rerun
@@ -226,6 +245,12 @@ class FlightSession:
         self.session_dir = session_dir or Path(self._tmp.name)  # type: ignore[union-attr]
         self.emulator: EmulatorProcess | None = None
         self.loop: FlightLoop | None = None
+        #: operator requests for the loop (signal handlers append "stop"; deque.append is
+        #: atomic and takes no lock); one deque from start-up on, so nothing is missed
+        self.requests: collections.deque[Any] = collections.deque()
+        #: the installed stop-signal handlers (groundstation.signals.StopSignals), if any:
+        #: the end reason names the signals that stopped the flight
+        self.stop_signals: Any = None
 
     def _dashboard_mode(self) -> str:
         if self.dashboard != "auto":
@@ -251,15 +276,61 @@ class FlightSession:
         wall0 = time.perf_counter()
         settings: dict[str, str] = {}
         truth_path: Path | None = None
+        rt_settings = (not lockstep if self.realtime_settings is None
+                       else self.realtime_settings and not lockstep)
         try:
+            if rt_settings:  # before any device thread runs: mlockall stalls the process
+                from drivers.realtime import lock_memory
+
+                settings["memory"] = lock_memory()
             if isinstance(backend, EmulatedBackend):
                 truth_path = self.session_dir / "truth.f64"
                 self.emulator = EmulatorProcess(backend, cfg.vehicle, self.mission.start_pos_w_m,
-                                                self.session_dir, self.corrupt_prob, truth_path)
+                                                self.session_dir, self.corrupt_prob, truth_path,
+                                                realtime_settings=rt_settings)
+                if self.emulator.realtime_settings:
+                    events.put_nowait("emulated vehicle real-time settings: "
+                                      + self.emulator.realtime_settings)
+            self._check_interrupted("starting the emulated vehicle")
             uris = device_uris(cfg, self.emulator)
             fc_uri, servo_uri, mocap_uri = uris.flight_ctrl, uris.servo, uris.mocap
             zero_steps = uris.servo_zero_steps
-            ring = TelemetryRing(RECORD_DTYPE, capacity=1 << 14)
+
+            # The devices first: a device that cannot be opened ends the session with one
+            # line naming it, before any record exists.
+            fc = _open_device("flight-ctrl", fc_uri, lambda: FlightCtrl.open(
+                fc_uri, FlightCtrlConfig(imu_rate_hz=backend.imu_rate_hz)))
+            ident = _open_device("flight-ctrl", fc_uri, fc.connect)
+            if lockstep:  # every sample answers our own `w`: read it in the loop's thread
+                fc.read_in_caller_thread()
+            events.put_nowait(f"flight-ctrl: {ident.protocol} firmware {ident.firmware_id} "
+                              f"on {fc_uri}")
+            self._check_interrupted("opening the Flight-Ctrl")
+            tilt = self.params.tilt
+            servo = TiltServo(TiltServoConfig(
+                uri=servo_uri, gear_ratio=tilt.worm_ratio, zero_offset_steps=zero_steps,
+                max_tilt_deg=tilt.max_tilt_deg, max_tilt_rate_deg_s=tilt.max_rate_deg_s,
+                rate_hz=50.0, serve="on_request" if lockstep else "periodic",
+                # in lockstep the tilt planner's ramp is the rate limit (sim time)
+                rate_limit_goal=not lockstep))
+            with stop_signals_blocked():  # its process must not die of a stray Ctrl-C
+                _open_device("servo", servo_uri, servo.start)
+            self._check_interrupted("starting the tilt servo")
+            loop_box: list[FlightLoop] = []
+
+            def loop_clock() -> int:
+                return loop_box[0].now_ns if loop_box else 0
+
+            mocap = _open_device("mocap", mocap_uri, lambda: open_pose_source(
+                mocap_uri, clock=loop_clock if lockstep else None))
+            if isinstance(mocap, NatNetClient):
+                _open_device("mocap", mocap_uri, lambda: mocap.start(receive_thread=not lockstep))
+            else:
+                _open_device("mocap", mocap_uri, mocap.start)
+            self._check_interrupted("connecting to the MoCap server")
+
+            with stop_signals_blocked():  # the shared-memory tracker process starts here
+                ring = TelemetryRing(RECORD_DTYPE, capacity=1 << 14)
             meta = {"session": cfg.name, "mission": self.mission.name,
                     "vehicle": self.params.name, "backend": backend.kind,
                     "clock": getattr(backend, "clock", "realtime"),
@@ -275,32 +346,8 @@ class FlightSession:
                                     self._dashboard_mode(),
                                     str(self.record_path.with_suffix(".rrd")), self.params,
                                     self.mavlink, status, commands))
-            tel.start()
-
-            fc = FlightCtrl.open(fc_uri, FlightCtrlConfig(imu_rate_hz=backend.imu_rate_hz))
-            ident = fc.connect()
-            if lockstep:  # every sample answers our own `w`: read it in the loop's thread
-                fc.read_in_caller_thread()
-            events.put_nowait(f"flight-ctrl: {ident.protocol} firmware {ident.firmware_id} "
-                              f"on {fc_uri}")
-            tilt = self.params.tilt
-            servo = TiltServo(TiltServoConfig(
-                uri=servo_uri, gear_ratio=tilt.worm_ratio, zero_offset_steps=zero_steps,
-                max_tilt_deg=tilt.max_tilt_deg, max_tilt_rate_deg_s=tilt.max_rate_deg_s,
-                rate_hz=50.0, serve="on_request" if lockstep else "periodic",
-                # in lockstep the tilt planner's ramp is the rate limit (sim time)
-                rate_limit_goal=not lockstep))
-            servo.start()
-            loop_box: list[FlightLoop] = []
-
-            def loop_clock() -> int:
-                return loop_box[0].now_ns if loop_box else 0
-
-            mocap = open_pose_source(mocap_uri, clock=loop_clock if lockstep else None)
-            if isinstance(mocap, NatNetClient):
-                mocap.start(receive_thread=not lockstep)
-            else:
-                mocap.start()
+            with stop_signals_blocked():  # it ignores them once its interpreter is up
+                tel.start()
             ukf = Ukf(_estimator_config(cfg, self.params))
             row_sink = ring.push
 
@@ -317,23 +364,26 @@ class FlightSession:
                 row_sink=row_sink, event_sink=event_sink)
             loop.shared_status = status
             loop.command_queue = commands
+            loop.requests = self.requests  # stop requests that came during start-up stand
             loop_box.append(loop)
             self.loop = loop
-            if self.realtime_settings and not lockstep:
+            if rt_settings:
                 from groundstation.timing import apply_realtime_settings
 
-                settings = apply_realtime_settings()
+                settings.update(apply_realtime_settings(lock_memory=False))
                 event_sink("real-time settings: " + "; ".join(f"{k}: {v}"
                                                                for k, v in settings.items()))
             try:
                 result = loop.run()
             finally:
-                if self.realtime_settings and not lockstep:
+                if rt_settings:
                     from groundstation.timing import restore_default_settings
 
                     restore_default_settings()
             result.telemetry_dropped = ring.dropped
             status[0] = float(int(loop.sm.state))  # the final state, for the MAVLink GCS
+            if self.stop_signals is not None and self.stop_signals.count:
+                result.end_reason += f" (on {self.stop_signals.describe()})"
             event_sink(f"session ended: {result.end_reason}")
             return SessionOutcome(result, self.record_path, self.events_path,
                                   loop.preflight_report, settings,
@@ -363,6 +413,22 @@ class FlightSession:
                         merge_truth(self.record_path, truth_path, backend.imu_rate_hz)
             if self._tmp is not None:
                 self._tmp.cleanup()
+
+
+    def _check_interrupted(self, stage: str) -> None:
+        """A stop signal during start-up ends the session there: nothing is armed yet."""
+        if self.requests:
+            raise SessionInterruptedError(f"stopped while {stage}: nothing was armed")
+
+
+def _open_device(what: str, uri: str, open_it: Callable[[], T]) -> T:
+    """Run one device-opening step; a driver or OS error becomes a one-line SessionError
+    naming the device and its URI (``flight-ctrl serial:///dev/ttyUSB0: cannot open: ...``)."""
+    try:
+        return open_it()
+    except (DriverError, MocapError, OSError, TimeoutError) as exc:
+        text = str(exc) or type(exc).__name__
+        raise SessionError(text if uri in text else f"{what} {uri}: {text}") from None
 
 
 def merge_truth(record_path: Path, truth_path: Path, imu_rate_hz: float) -> int:

@@ -23,6 +23,7 @@ import contextlib
 import os
 import select
 import signal
+from collections.abc import Iterator
 from types import FrameType
 from typing import Any
 
@@ -31,10 +32,29 @@ STOP_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM, signa
 
 
 def ignore_stop_signals() -> None:
-    """For a session's child processes: the ground station ends them, not the terminal."""
+    """For a session's child processes: the ground station ends them, not the terminal.
+
+    A child started inside :func:`stop_signals_blocked` has had them blocked since its first
+    instruction (a signal mask survives ``exec``); once ignored they are unblocked, and any that
+    arrived meanwhile are discarded."""
     for sig in STOP_SIGNALS:
         with contextlib.suppress(OSError, ValueError):
             signal.signal(sig, signal.SIG_IGN)
+    with contextlib.suppress(OSError, ValueError):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
+
+
+@contextlib.contextmanager
+def stop_signals_blocked() -> Iterator[None]:
+    """Start child processes inside this block: they inherit a mask that holds the stop
+    signals back until they ignore them (a spawned interpreter takes a second or more to get
+    there, and a Ctrl-C in that window would kill it). The parent only defers them: a signal
+    that arrives meanwhile is delivered to its handler when the block ends."""
+    signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
 
 
 class StopSignals:

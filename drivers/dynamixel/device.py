@@ -822,9 +822,14 @@ class _ReconfigureError(ServoCommError):
 def _run_worker(cfg: TiltServoConfig, mailbox: _Mailbox, conn: Any, stop: Any,
                 in_process: bool) -> None:
     if in_process:
-        # Ctrl-C belongs to the flight state machine (land first): the servo process keeps
-        # holding the tilt until it is told to stop.
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        # Ctrl-C, SIGTERM and SIGHUP to the process group belong to the flight state machine
+        # (land first): the servo process keeps holding the tilt until it is told to stop.
+        stop_signals = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+        for sig in stop_signals:
+            signal.signal(sig, signal.SIG_IGN)
+        # the owner may have started us with them blocked (so that none kills us before
+        # this point): ignored now, they can be let through
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, stop_signals)
         logging.basicConfig(level=logging.WARNING)
     _Worker(cfg, mailbox, conn, stop).run()
 

@@ -7,8 +7,8 @@ lands, a second Ctrl-C cuts the motors. The flight record is written as the flig
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
-import signal
 import sys
 import threading
 import time
@@ -31,8 +31,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true",
                         help="print the exit summary as one JSON object")
     parser.add_argument("--quiet", action="store_true", help="no live status or event lines")
-    parser.add_argument("--realtime-settings", action="store_true",
-                        help="try CPU pinning, SCHED_FIFO and a frozen GC (realtime only)")
+    parser.add_argument("--realtime-settings", action=argparse.BooleanOptionalAction,
+                        default=None, help="CPU pinning, SCHED_FIFO for every loop thread, "
+                        "locked memory and a frozen GC, each where permitted (default: on for "
+                        "hardware and realtime sessions, off in lockstep)")
     parser.add_argument("--rerun", choices=("spawn", "serve", "save", "off", "auto"),
                         default=None, help="live dashboard: spawn the viewer, serve the web "
                         "viewer, save RECORD.rrd, or off (default: the session's; auto = spawn "
@@ -56,8 +58,14 @@ def run(args: argparse.Namespace) -> int:
     from controller.missions import Mission
     from groundstation.cli import UserError
     from groundstation.configs import load_mission, load_vehicle
-    from groundstation.session import FlightSession, SessionError, summary_lines
+    from groundstation.session import (
+        FlightSession,
+        SessionError,
+        SessionInterruptedError,
+        summary_lines,
+    )
     from groundstation.session_config import EmulatedBackend, load_session, resolve_reference
+    from groundstation.signals import StopSignals
 
     path = find_config("sessions", args.session)
     cfg = load_session(path)
@@ -82,37 +90,48 @@ def run(args: argparse.Namespace) -> int:
                             dashboard=args.rerun, mavlink=args.mavlink,
                             mavlink_key_file=args.mavlink_key_file)
     stop_status = threading.Event()
-
-    def on_sigint(signum: int, frame: Any) -> None:
-        if session.loop is not None:
-            session.loop.requests.append("stop")
-
-    previous = signal.signal(signal.SIGINT, on_sigint)
+    # SIGINT (Ctrl-C), SIGTERM and SIGHUP: the first lands, a second cuts (groundstation.signals)
+    signals = StopSignals(session.requests).install()
+    session.stop_signals = signals
     status: threading.Thread | None = None
     if not args.quiet and not args.json and sys.stderr.isatty():
         def show() -> None:
             while not stop_status.wait(0.2):
+                if signals.hangup:  # the terminal is gone
+                    return
                 if session.loop is not None and session.loop.status:
-                    print("\r" + session.loop.status, end="", file=sys.stderr, flush=True)
+                    with contextlib.suppress(OSError):
+                        print("\r" + session.loop.status, end="", file=sys.stderr, flush=True)
         status = threading.Thread(target=show, daemon=True)
         status.start()
     try:
-        outcome = session.run()
-    except SessionError as exc:
-        raise UserError(str(exc)) from None
+        try:
+            outcome = session.run()
+        except SessionInterruptedError as exc:
+            print(f"fasthex: {signals.describe()}: {exc}", file=sys.stderr)
+            return 1
+        except SessionError as exc:
+            raise UserError(str(exc)) from None
+        finally:
+            stop_status.set()
+            if status is not None:
+                status.join(timeout=1.0)
+                with contextlib.suppress(OSError):
+                    print(file=sys.stderr)
+        summary = flight_summary(outcome, params, cfg.name)
+        try:
+            if args.json:
+                json.dump(summary, sys.stdout, indent=2)
+                sys.stdout.write("\n")
+            else:
+                print("\n".join(summary_lines(outcome)))
+                metrics_table(summary)
+            sys.stdout.flush()
+        except OSError:  # stdout was the terminal that hung up: the record and events stand
+            pass
+        return 0 if summary["end_reason"] in ("touchdown", "mission complete") else 1
     finally:
-        stop_status.set()
-        signal.signal(signal.SIGINT, previous)
-        if status is not None:
-            print(file=sys.stderr)
-    summary = flight_summary(outcome, params, cfg.name)
-    if args.json:
-        json.dump(summary, sys.stdout, indent=2)
-        sys.stdout.write("\n")
-    else:
-        print("\n".join(summary_lines(outcome)))
-        metrics_table(summary)
-    return 0 if summary["end_reason"] in ("touchdown", "mission complete") else 1
+        signals.restore()
 
 
 def flight_summary(outcome: Any, params: Any, session: str) -> dict[str, Any]:
@@ -133,13 +152,22 @@ def flight_summary(outcome: Any, params: Any, session: str) -> dict[str, Any]:
         "poses_rejected": r.estimator_poses_rejected,
         "fusion_delay_ms": 1e3 * r.estimator_fusion_delay_s,
         "telemetry_dropped": r.telemetry_dropped,
+        # realtime: the longest wait between two IMU samples on the host clock (gaps below
+        # imu_timeout_s are bridged with the last command), and the empty waits it took
+        "imu_gap_max_ms": r.counters.get("imu_gap_max_us", 0) / 1000.0,
+        "imu_gap_max_at_s": r.counters.get("imu_gap_max_at_ms", 0) / 1000.0,
+        "imu_waits_empty": r.counters.get("imu_missing", 0),
         "record": str(outcome.record_path),
         "preflight": [{"check": n, "pass": ok, "value": v} for n, ok, v in outcome.preflight],
     }
     from groundstation.gcs import summary_fields
 
     out.update(summary_fields(outcome.record_path))  # mavlink_*: the link's counters, if on
-    rec = read_record(outcome.record_path)
+    try:
+        rec = read_record(outcome.record_path)
+    except (OSError, ValueError) as exc:  # e.g. the telemetry process was killed: say so
+        out["state_source"] = f"none: the flight record cannot be read ({exc})"
+        return out
     out["state_source"] = rec.metadata.get("state", "ground-station estimate")
     if len(rec.rows):
         out.update(flight_metrics(rec.rows, min_spin_hz=params.rotors.min_spin_hz,

@@ -1,0 +1,181 @@
+"""Stop signals as a terminal, ``timeout`` and systemd send them, to a `fasthex fly` that runs in a
+real pseudo-terminal as its controlling terminal.
+
+- Ctrl-C typed into the terminal: the line discipline sends SIGINT to the whole foreground
+  process group (the ground station, its telemetry and servo processes);
+- SIGTERM to the process group (``timeout``, ``kill -TERM -PGID``; systemd signals every process
+  of the unit);
+- SIGHUP: the terminal closes (the master side of the pty is closed).
+
+Each must land the vehicle (``-> LANDING -> DISARMED``) with the end reason naming the signal,
+cut nothing, and leave no process, temp dir, pty or symlink behind; a second signal cuts.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import os
+import pty
+import signal
+import subprocess
+import sys
+import termios
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from flight_support import SESSION, SHORT_MISSION
+
+from groundstation.record import read_record
+
+
+def _rows(path: Path) -> int:
+    try:
+        return len(read_record(path).rows)
+    except (OSError, ValueError):
+        return 0
+
+
+def _take_terminal() -> None:
+    """In the child: a new session whose controlling terminal is the pty on fd 0."""
+    os.setsid()
+    fcntl.ioctl(0, termios.TIOCSCTTY, 0)
+
+
+def _processes_mentioning(text: str) -> list[int]:
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        with contextlib.suppress(OSError):
+            cmd = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            if text in cmd:
+                pids.append(int(entry.name))
+    return pids
+
+
+class TerminalFlight:
+    """`fasthex fly` on a lockstep session hovering for a minute, in a pty of its own."""
+
+    def __init__(self, tmp_path: Path, name: str) -> None:
+        self.tmp = tmp_path / "tmp"  # TMPDIR of the flight: its session dir lands here
+        self.tmp.mkdir()
+        (tmp_path / "short-hover.yaml").write_text(
+            SHORT_MISSION.replace("duration_s: 4.0", "duration_s: 60.0"))
+        session = tmp_path / f"{name}.yaml"
+        session.write_text(SESSION.format(seed=2, faults="", corrupt=0.0, zmax=2.5,
+                                          servo_action="hold"))
+        self.record = tmp_path / f"{name}.fhr"
+        self.events = Path(str(self.record) + ".events.txt")
+        self.master, slave = pty.openpty()
+        env = dict(os.environ, TMPDIR=str(self.tmp))
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "groundstation", "fly", str(session), "--record",
+             str(self.record), "--rerun", "off"],
+            stdin=slave, stdout=slave, stderr=slave, env=env, preexec_fn=_take_terminal,
+            close_fds=True)
+        os.close(slave)
+        self.output = bytearray()
+        self._reader = threading.Thread(target=self._drain, daemon=True)
+        self._reader.start()
+
+    def _drain(self) -> None:  # a terminal reads what the program writes
+        while True:
+            try:
+                data = os.read(self.master, 4096)
+            except OSError:
+                return
+            if not data:
+                return
+            self.output += data
+
+    def wait_airborne(self) -> None:
+        deadline = time.monotonic() + 120.0
+        while _rows(self.record) < 3000 and time.monotonic() < deadline:  # 6 s of ticks
+            time.sleep(0.05)  # polling the record another process writes, bounded
+        assert _rows(self.record) >= 3000, self.output.decode(errors="replace")
+
+    def type_ctrl_c(self) -> None:
+        os.write(self.master, b"\x03")
+
+    def hang_up(self) -> None:
+        os.close(self.master)
+        self.master = -1
+
+    def signal_group(self, sig: int) -> None:
+        os.killpg(self.proc.pid, sig)
+
+    def wait(self) -> int:
+        try:
+            return self.proc.wait(timeout=120)
+        finally:
+            self._reader.join(timeout=5)
+            if self.master >= 0:
+                os.close(self.master)
+
+    def assert_nothing_left(self) -> None:
+        leftovers = list(self.tmp.iterdir())
+        assert leftovers == [], leftovers  # session dir with its pty symlinks removed
+        deadline = time.monotonic() + 10.0
+        while _processes_mentioning(str(self.tmp)) and time.monotonic() < deadline:
+            time.sleep(0.05)  # the emulator's orderly stop, bounded
+        assert _processes_mentioning(str(self.tmp)) == []
+        assert _processes_mentioning(str(self.record)) == []  # telemetry process gone
+
+
+def _assert_landed(flight: TerminalFlight, signame: str) -> None:
+    events = flight.events.read_text()
+    assert "operator stop: landing" in events, events
+    assert "-> LANDING: operator: land" in events
+    assert "LANDING -> DISARMED: touchdown" in events
+    assert "CUT" not in events
+    assert f"session ended: operator: land (on {signame})" in events
+    rows = read_record(flight.record).rows
+    assert rows["pos_w_m"][-1][2] < 0.15  # on the ground (start height 0.1 m)
+
+
+def test_that_ctrl_c_typed_in_the_terminal_lands(tmp_path: Path) -> None:
+    flight = TerminalFlight(tmp_path, "ctrl-c")
+    flight.wait_airborne()
+    flight.type_ctrl_c()
+    assert flight.wait() == 1  # landed early: not the planned end
+    _assert_landed(flight, "SIGINT")
+    flight.assert_nothing_left()
+
+
+def test_that_sigterm_to_the_process_group_lands(tmp_path: Path) -> None:
+    flight = TerminalFlight(tmp_path, "term")
+    flight.wait_airborne()
+    flight.signal_group(signal.SIGTERM)
+    assert flight.wait() == 1
+    _assert_landed(flight, "SIGTERM")
+    flight.assert_nothing_left()
+
+
+def test_that_closing_the_terminal_lands(tmp_path: Path) -> None:
+    flight = TerminalFlight(tmp_path, "hup")
+    flight.wait_airborne()
+    flight.hang_up()  # the kernel sends SIGHUP to the session's foreground group
+    assert flight.wait() == 1
+    _assert_landed(flight, "SIGHUP")
+    flight.assert_nothing_left()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_that_a_second_signal_cuts(tmp_path: Path, sig: int) -> None:
+    flight = TerminalFlight(tmp_path, f"cut-{int(sig)}")
+    flight.wait_airborne()
+    flight.signal_group(sig)
+    n = _rows(flight.record)
+    deadline = time.monotonic() + 60.0
+    while _rows(flight.record) < n + 250 and time.monotonic() < deadline:  # 0.5 s later
+        time.sleep(0.05)
+    flight.signal_group(sig)
+    assert flight.wait() == 1
+    events = flight.events.read_text()
+    assert "-> LANDING: operator: land" in events
+    assert "-> CUT: operator: second stop request" in events, events
+    assert "CUT -> DISARMED" in events
+    flight.assert_nothing_left()
