@@ -90,6 +90,9 @@ class _Tally:
 
     def one(self, data: bytes) -> None:
         self.inputs += 1
+        if self.inputs % 20_000 == 0:  # a killed run still leaves its figures
+            (self.out / f"{self.name}.progress.json").write_text(
+                json.dumps(self.report("partial")))
         try:
             bad = self.run(data)
             if bad and self.out_of_range < 5:
@@ -206,8 +209,12 @@ def main(argv: list[str] | None = None) -> int:
             proc = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=log, text=True,
                                   env={**os.environ, "PYTHONHASHSEED": "0"}, check=False)
         lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("{")]
-        if not lines:
-            result: dict[str, Any] = {
+        progress = out / f"{name}.progress.json"
+        result: dict[str, Any]
+        if not lines and progress.exists():
+            result = json.loads(progress.read_text())  # engine "partial": the run was cut
+        elif not lines:
+            result = {
                 "target": name, "engine": engine, "inputs": 0, "escapes": 1,
                 "out_of_range": 0, "seconds": 0.0, "inputs_per_s": 0,
                 "escape_kinds": {f"process exit {proc.returncode}": 1}}
