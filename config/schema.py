@@ -2,7 +2,8 @@
 
 Every config file is a YAML mapping that carries ``schema`` (what kind of file it is) and
 ``version`` (an integer the reader supports), then the keys of one frozen dataclass. The file is
-parsed with PyYAML's ``SafeLoader`` (the loader behind ``yaml.safe_load``); we walk its node tree
+parsed with PyYAML's ``SafeLoader`` (the loader behind ``yaml.safe_load``; its libyaml form
+``CSafeLoader`` where installed); we walk its node tree
 instead of the plain Python objects so that every error can name the line it comes from.
 
 What is refused, each with one message naming file, line, key path and expectation:
@@ -164,7 +165,7 @@ def _check_text(text: str, file_label: str) -> None:
 def _check_events(text: str, file_label: str) -> None:
     """Walk the parser's events (no recursion): documents, depth, size, aliases."""
     depth = documents = nodes = 0
-    loader = yaml.SafeLoader(text)
+    loader = _Loader(text)
     try:
         while loader.check_event():
             event = loader.get_event()
@@ -201,7 +202,7 @@ def _load_text(text: str, cls: type[T], schema: str, versions: tuple[int, ...],
     text = text.removeprefix("\ufeff")  # a UTF-8 byte-order mark is harmless
     _check_text(text, file_label)
     _check_events(text, file_label)
-    loader = yaml.SafeLoader(text)
+    loader = _Loader(text)
     try:
         root = loader.get_single_node()
     except yaml.YAMLError as exc:
@@ -234,12 +235,15 @@ def _load_text(text: str, cls: type[T], schema: str, versions: tuple[int, ...],
 
 Entries = dict[str, tuple[yaml.Node, yaml.Node]]
 
+#: libyaml's parser when PyYAML was built with it (14x faster, same nodes and resolver)
+_Loader: Any = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
 #: C0 controls but tab and CR, DEL, C1 controls, and the non-characters a text file never holds
 _CONTROL = re.compile("[\x00-\x08\x0b-\x0c\x0e-\x1f\x7f-\x9f\ufffe\uffff]")
 
 
 class _Walker:
-    def __init__(self, file_label: str, loader: yaml.SafeLoader,
+    def __init__(self, file_label: str, loader: Any,
                  lines: dict[str, int] | None = None) -> None:
         self.file = file_label
         self.loader = loader
@@ -337,7 +341,7 @@ class _Walker:
 
     def number(self, node: yaml.Node, key: str, meta: dict[str, Any]) -> float:
         value = self.scalar(node, key)
-        if isinstance(value, str) and getattr(node, "style", None) is None:
+        if isinstance(value, str) and not getattr(node, "style", None):  # plain: None or ""
             # YAML 1.1 reads 4e-6 as text: accept a plain scalar Python can read.
             with contextlib.suppress(ValueError):
                 value = float(value)
@@ -387,7 +391,7 @@ class _Walker:
             raise TypeError(f"config unions must be of dataclasses, got {tp!r} at {key}")
         tag = _discriminator(members)
         entries = self.mapping(node, key)
-        options = {v: m for m in members for v in get_args(typing.get_type_hints(m)[tag])}
+        options = {v: m for m in members for v in get_args(_hints(m)[tag])}
         if tag not in entries:
             raise self.error(node, _join(key, tag), "missing key; expected one of "
                              + ", ".join(map(repr, options)))
@@ -399,7 +403,7 @@ class _Walker:
         return self.dataclass_from(options[value], node, entries, key)
 
     def dataclass_from(self, cls: type[T], node: yaml.Node, entries: Entries, key: str) -> T:
-        hints = typing.get_type_hints(cls)
+        hints = _hints(cls)
         field_list = [f for f in dataclasses.fields(cls) if f.init]  # type: ignore[arg-type]
         known = {f.name for f in field_list}
         for name, (key_node, _) in entries.items():
@@ -423,6 +427,16 @@ class _Walker:
                 first = exc.key.split(".")[0].split("[")[0]
                 line = (entries[first][1] if first in entries else node).start_mark.line + 1
             raise ConfigError(self.file, line, full, exc.message) from None
+
+
+_HINTS: dict[Any, dict[str, Any]] = {}
+
+
+def _hints(cls: Any) -> dict[str, Any]:
+    """The resolved field types of a config class (resolving string annotations is slow)."""
+    if cls not in _HINTS:
+        _HINTS[cls] = typing.get_type_hints(cls)
+    return _HINTS[cls]
 
 
 def _join(prefix: str, name: str) -> str:
@@ -453,7 +467,7 @@ def _short(value: Any) -> str:
 def _discriminator(members: list[Any]) -> str:
     common: set[str] | None = None
     for m in members:
-        names = {n for n, t in typing.get_type_hints(m).items() if get_origin(t) is Literal}
+        names = {n for n, t in _hints(m).items() if get_origin(t) is Literal}
         common = names if common is None else common & names
     if not common:
         raise TypeError(f"dataclass union {members} has no shared Literal field")

@@ -139,3 +139,58 @@ def test_that_bad_missions_are_refused_naming_the_key(segments: str, key: str) -
     with pytest.raises(ConfigError) as err:
         _mission(segments)
     assert err.value.key == key
+
+
+@pytest.mark.parametrize(("segments", "start", "line", "key", "message"), [
+    # a takeoff that does not climb above where it starts
+    ("  - {kind: takeoff, duration_s: 3, height_m: 0.12}\n", "[0.0, 0.0, 0.1]", 6,
+     "segments[0].height_m", "must be above where the takeoff starts (z = 0.1 m) by >= 0.05 m, "
+     "got 0.12"),
+    ("  - {kind: goto, duration_s: 5, pos_w_m: [0, 0, 2]}\n"
+     "  - {kind: takeoff, duration_s: 3, height_m: 1.5}\n", "[0.0, 0.0, 0.1]", 7,
+     "segments[1].height_m", "must be above where the takeoff starts (z = 2 m) by >= 0.05 m, "
+     "got 1.5"),
+    # alpha timings outside their segment never happen
+    ("  - kind: hold\n    duration_s: 5\n    alpha: {kind: steps, times_s: [0, 7],"
+     " values_deg: [0, 10]}\n", "[0.0, 0.0, 0.1]", 8, "segments[0].alpha.times_s",
+     "a step at 7 s never happens in a segment of 5 s"),
+    # minimum-jerk peak speed 1.875 d / T = 1.875 * 10 / 1 = 18.75 m/s
+    ("  - {kind: goto, duration_s: 1, pos_w_m: [10, 0, 0.1]}\n", "[0.0, 0.0, 0.1]", 6,
+     "segments[0].pos_w_m", "a 10 m move in 1 s peaks at 18.8 m/s and 57.7 m/s^2; expected <= "
+     "10 m/s and 9.81 m/s^2 (a longer duration_s)"),
+    # A (2 pi f)^2 = 0.5 * (2 pi)^2 = 19.7 m/s^2
+    ("  - {kind: sine, duration_s: 5, axis: x, amplitude_m: 0.5, frequency_hz: 1}\n",
+     "[0.0, 0.0, 0.1]", 6, "segments[0].amplitude_m",
+     "peak acceleration A (2 pi f)^2 = 19.7 m/s^2; expected <= 9.81 m/s^2"),
+    # a start 1e9 m away is outside any workspace
+    ("  - {kind: hold, duration_s: 1}\n", "[1e9, 0.0, 0.1]", 4, "start_pos_w_m[0]",
+     "expected a number >= -100 and <= 100, got 1000000000.0"),
+])
+def test_that_physically_impossible_missions_are_refused_at_their_line(
+        segments: str, start: str, line: int, key: str, message: str) -> None:
+    with pytest.raises(ConfigError) as err:
+        _mission(segments, start=start)
+    assert (err.value.line, err.value.key, err.value.message) == (line, key, message)
+
+
+def test_that_the_extents_cover_each_segment_and_the_alphas_are_listed() -> None:
+    # Fixture
+    from controller.missions import explicit_alphas_deg, segment_extents_w_m
+
+    text = (f"schema: {MISSION_SCHEMA}\nversion: 1\nname: t\nstart_pos_w_m: [0.0, 0.0, 0.1]\n"
+            "segments:\n  - {kind: takeoff, duration_s: 3, height_m: 1.0,\n"
+            "     alpha: {kind: constant, value_deg: 5}}\n"
+            "  - {kind: sine, duration_s: 10, axis: y, amplitude_m: 0.4, frequency_hz: 0.2,\n"
+            "     alpha: {kind: ramp, from_deg: 0, to_deg: 20, end_s: 4}}\n"
+            "  - {kind: goto, duration_s: 5, pos_w_m: [1.0, -1.0, 1.5]}\n")
+    spec_ = load_config_text(text, MissionSpec, schema=MISSION_SCHEMA)
+    # Test
+    extents = segment_extents_w_m(spec_)
+    alphas = explicit_alphas_deg(spec_)
+    # Assert
+    assert extents[0] == ((0.0, 0.0, 0.1), (0.0, 0.0, 1.0))
+    assert extents[1] == ((0.0, -0.4, 1.0), (0.0, 0.4, 1.0))
+    assert extents[2][0] == pytest.approx((0.0, -1.0, 1.0))
+    assert extents[2][1] == pytest.approx((1.0, 0.0, 1.5), abs=1e-9)
+    assert alphas == [("segments[0].alpha.value_deg", 5.0), ("segments[1].alpha.from_deg", 0.0),
+                      ("segments[1].alpha.to_deg", 20.0)]

@@ -3,6 +3,7 @@ before anything is opened (including errors in the files a session refers to).""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -80,3 +81,100 @@ def test_that_errors_in_a_referenced_vehicle_file_name_that_file(tmp_path: Path)
         load_session(path)
     assert str(info.value).startswith(f"{vehicle}:")
     assert "mass_kg: weight 88.3 N needs >= 20 % thrust margin" in str(info.value)
+
+
+@pytest.mark.parametrize(("key", "ref", "message"), [
+    ("vehicle", "fasthex-maxi", "no such vehicle 'fasthex-maxi' (shipped: fasthex, fasthex-mini)"),
+    ("disturbances", "windy", "no such disturbance 'windy' (shipped: ideal, paper-calibrated)"),
+    ("mission", "mine.yaml", "no such file 'mine.yaml' (relative to the session file)"),
+])
+def test_that_a_missing_reference_names_the_session_file_and_line(
+        tmp_path: Path, key: str, ref: str, message: str) -> None:
+    text = "\n".join(
+        (line.split(":")[0] + f": {ref}") if line.strip().startswith(f"{key}:") else line
+        for line in GOOD.splitlines()) + "\n"
+    path = tmp_path / "session.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_session(path)
+    full_key = "backend.disturbances" if key == "disturbances" else key
+    assert str(info.value) == f"{path}:{_line_of(text, key + ':')}: {full_key}: {message}"
+
+
+def test_that_a_waypoint_outside_the_geofence_is_refused_at_the_mission_line(
+        tmp_path: Path) -> None:
+    # Fixture: the shipped Exp. 1 with one more waypoint, 2.45 m out: inside the 2.5 m fence
+    # but not by the 0.1 m margin
+    mission_text = find_config("missions", "exp1-hover-tilt-steps").read_text().replace(
+        "  - kind: land\n", "  - kind: goto\n    duration_s: 10.0\n    pos_w_m: [2.45, 0, 1]\n"
+        "  - kind: land\n", 1)
+    (tmp_path / "m.yaml").write_text(mission_text)
+    path = tmp_path / "session.yaml"
+    path.write_text(GOOD.replace("mission: exp1-hover-tilt-steps", "mission: m.yaml"))
+    # Test
+    with pytest.raises(ConfigError) as info:
+        load_session(path)
+    # Assert
+    assert str(info.value) == (
+        f"{tmp_path / 'm.yaml'}:{_line_of(mission_text, 'pos_w_m: [2.45')}: segments[3].pos_w_m: "
+        f"reaches x = 2.45 m, outside the geofence of {path} (line "
+        f"{_line_of(GOOD, 'geofence_min_m')}) less 0.1 m (-2.4..2.4 m)")
+
+
+def test_that_a_fence_below_the_mission_names_the_takeoff(tmp_path: Path) -> None:
+    path = tmp_path / "session.yaml"
+    path.write_text(GOOD.replace("geofence_max_m: [2.5, 2.5, 2.5]",
+                                 "geofence_max_m: [2.5, 2.5, 0.8]"))
+    mission = find_config("missions", "exp1-hover-tilt-steps")
+    with pytest.raises(ConfigError) as info:
+        load_session(path)
+    assert str(info.value).startswith(
+        f"{mission}:{_line_of(mission.read_text(), 'height_m')}: segments[0].height_m: "
+        "reaches z = 1 m, outside the geofence")
+
+
+def test_that_alpha_beyond_the_vehicles_tilt_is_an_error_not_a_clamp(tmp_path: Path) -> None:
+    # Fixture: Exp. 1 steps to 30 deg; fasthex-mini tilts at most 30: 32 is beyond
+    mission_text = find_config("missions", "exp1-hover-tilt-steps").read_text().replace(
+        "values_deg: [0.0, 30.0, 0.0, 30.0]", "values_deg: [0.0, 30.0, 0.0, 32.0]")
+    (tmp_path / "m.yaml").write_text(mission_text)
+    path = tmp_path / "session.yaml"
+    path.write_text(GOOD.replace("mission: exp1-hover-tilt-steps", "mission: m.yaml")
+                    .replace("vehicle: fasthex", "vehicle: fasthex-mini"))
+    with pytest.raises(ConfigError) as info:
+        load_session(path)
+    assert str(info.value) == (
+        f"{tmp_path / 'm.yaml'}:{_line_of(mission_text, 'values_deg')}: "
+        "segments[2].alpha.values_deg[3]: 32 deg is outside vehicle 'fasthex-mini''s tilt "
+        "(a tilt range of 0..30 deg)")
+
+
+def test_that_a_preset_file_is_validated_and_resolved_against_the_session(
+        tmp_path: Path) -> None:
+    # Fixture: a session in a folder next to its preset; loaded from elsewhere
+    preset = find_config("disturbances", "paper-calibrated").read_text()
+    (tmp_path / "slow-mocap.yaml").write_text(preset.replace("mocap_rate_hz: 100.0",
+                                                             "mocap_rate_hz: 10.0"))
+    (tmp_path / "good.yaml").write_text(preset)
+    path = tmp_path / "session.yaml"
+    # Test / Assert: a 10 Hz MoCap cannot keep the 0.05 s stale timeout quiet
+    path.write_text(GOOD.replace("disturbances: paper-calibrated", "disturbances: slow-mocap.yaml"))
+    with pytest.raises(ConfigError) as info:
+        load_session(path)
+    assert str(info.value).startswith(f"{path}:")
+    assert "estimator.mocap_stale_s: 0.05 s is within one frame of the emulated MoCap" \
+        in str(info.value)
+    path.write_text(GOOD.replace("disturbances: paper-calibrated", "disturbances: good.yaml"))
+    backend = load_session(path).backend
+    assert isinstance(backend, EmulatedBackend)
+    assert backend.disturbances == str(tmp_path / "good.yaml")
+
+
+def test_that_an_imu_timeout_below_two_periods_is_refused(tmp_path: Path) -> None:
+    text = re.sub(r"(?m)^  imu_timeout_s: .*$", "  imu_timeout_s: 0.003", GOOD)
+    path = tmp_path / "session.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_session(path)
+    assert str(info.value) == (f"{path}:{_line_of(text, 'imu_timeout_s')}: safety.imu_timeout_s: "
+                               "expected >= two IMU periods at 500 Hz (0.004 s), got 0.003")
