@@ -284,7 +284,10 @@ class FlightSession:
 
                 settings["memory"] = lock_memory()
             if isinstance(backend, EmulatedBackend):
-                truth_path = self.session_dir / "truth.f64"
+                # Lockstep only (that is where it is merged into the record): its writes come
+                # from the emulated board's thread, and under disk pressure a page-cache write
+                # can block for hundreds of ms, which would stall a realtime IMU stream.
+                truth_path = self.session_dir / "truth.f64" if lockstep else None
                 self.emulator = EmulatorProcess(backend, cfg.vehicle, self.mission.start_pos_w_m,
                                                 self.session_dir, self.corrupt_prob, truth_path,
                                                 realtime_settings=rt_settings)
