@@ -3,8 +3,8 @@
 Each test runs the real CLI in a child process (``--json`` gives the summary and the link's
 counters) with a GCS peer on loopback: MAVProxy signed with the session's key, a pymavlink
 endpoint that plays the lab GCS and an attacker sending unsigned, wrongly signed, stale and
-replayed frames, or MAVSDK (its 4.x Python package runs the C++ library in-process, offline). Waiting is on messages and output lines with generous deadlines; nothing is
-timed.
+replayed frames, or MAVSDK (its 4.x Python package runs the C++ library in-process, offline).
+Waiting is on messages and output lines with generous deadlines; nothing is timed.
 """
 
 from __future__ import annotations
@@ -243,6 +243,11 @@ def test_that_without_a_key_a_land_is_refused_the_flight_completes_and_ends_on_t
     assert gcs.landed[-3:] == [M.MAV_LANDED_STATE_ON_GROUND] * 3
     assert M.MAV_LANDED_STATE_IN_AIR in gcs.landed  # the landed state followed the flight
     assert any("session over: DISARMED" in t for t in gcs.texts)
+    # each transition went out once, in the order the loop made them
+    transitions = [t for t in gcs.texts if " -> " in t]
+    assert len(transitions) == len(set(transitions)) >= 4
+    assert [t.split(":")[0] for t in transitions] == [
+        t.split(": ")[0].split(" s ")[1] for t in summary["transitions"]]
 
 
 def test_that_an_unreadable_key_file_is_one_line_and_exit_2_before_anything_opens(
