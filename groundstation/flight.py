@@ -11,8 +11,10 @@ States and transitions::
 
     PREFLIGHT --checks pass + arm--> ARMED --idle spin-up done--> TAKEOFF --at start pose--> MISSION
     MISSION --mission done--> LANDING --touchdown--> DISARMED
+    ARMED --IMU/link lost--> CUT (the other failsafes need the vehicle in the air)
     any flying state --MoCap lost > timeout | geofence | body tilt | battery low | servo fault
                        (action land) | operator stop--> LANDING (on the estimate)
+    LANDING (mission's) --any of the failsafes above--> LANDING (on the estimate)
     any flying state --IMU/link lost | second operator stop | failsafe action cut--> CUT
     CUT --> DISARMED (motors stopped; the Flight-Ctrl watchdog also stops them on link loss)
 """
@@ -231,6 +233,13 @@ class FlightStateMachine:
         self.faults.append(f"{t_s:.3f} s: {what}")
 
     def _land(self, t_s: float, reason: str, *, here: bool) -> None:
+        if here and self.state is FlightState.LANDING and not self._land_here:
+            # a failsafe during the mission's own landing: give up the planned path and land
+            # where the vehicle is, recorded as a LANDING -> LANDING transition so that the
+            # loop takes the landing reference from this tick's estimate
+            self._land_here = True
+            self.transitions.append(Transition(t_s, self.state, self.state, reason))
+            return
         self._land_here = here
         self._go(t_s, FlightState.LANDING, reason)
 

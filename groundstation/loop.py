@@ -41,6 +41,7 @@ from drivers.mikrokopter.device import LinkHealth
 from estimator.types import HealthFlag
 from estimator.ukf import Ukf
 from groundstation.flight import (
+    FLYING,
     FlightState,
     FlightStateMachine,
     HealthSnapshot,
@@ -57,6 +58,14 @@ log = logging.getLogger(__name__)
 ZERO6 = (0.0,) * 6
 #: ticks between checks of the IMU link's measured rate (the check costs ~20 us)
 LINK_CHECK_TICKS = 50
+#: below this fraction of the set IMU rate the link is degraded: motors cut (the driver's own
+#: ``min_rate_fraction`` on the wall clock; in lockstep the loop counts sequence-number gaps)
+IMU_MIN_RATE_FRACTION = 0.8
+#: lockstep: the IMU rate is the samples received over the last this many sample periods of
+#: the board's clock (0.5 s at 500 Hz, the driver's ``rate_window_s``), judged every
+#: LINK_CHECK_TICKS ticks: a degraded link is cut within one window and one check of its onset,
+#: and a single gap shorter than imu_timeout_s leaves the rate above the limit
+IMU_RATE_WINDOW_SAMPLES = 250
 #: landing: O_B within 4 cm of its resting height this long -> touchdown confirmed, disarm
 TOUCHDOWN_CONFIRM_S = 0.4
 #: lockstep: wall time after which a sample counts as lost, and the slice to check the link
@@ -79,6 +88,10 @@ class LoopResult:
     loop_wall_s: float = 0.0  # wall time from the first IMU sample to the end
     estimator_fusion_delay_s: float = 0.0  # how far the UKF ran behind the newest sample
     counters: dict[str, int] = field(default_factory=dict)
+    #: the closest each health input came to its safety limit while flying (TAKEOFF, MISSION,
+    #: LANDING): mocap_age_max_s, imu_gap_max_s (from sequence numbers), imu_rate_min_fraction,
+    #: body_tilt_max_deg, battery_min_v, pos_min_w_m / pos_max_w_m (the estimate, per axis)
+    health_extremes: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -130,6 +143,9 @@ class FlightLoop:
         self._counters = {"telemetry_dropped": 0, "imu_missing": 0, "poses_fused": 0,
                           "servo_sync_failures": 0}
         self._rx_errors = 0
+        #: received / expected IMU samples over the last rate window (lockstep: from sequence
+        #: numbers, so a degraded link is caught on the simulated clock too)
+        self.imu_rate_fraction = 1.0
 
     # -- the loop --------------------------------------------------------------------------
     def run(self) -> LoopResult:
@@ -158,6 +174,11 @@ class FlightLoop:
         wall_start = 0.0
         last_spins: tuple[float, ...] = ZERO6
         servo_health = ServoHealth.OK
+        # IMU rate on the board's own clock: samples received per sequence numbers elapsed
+        # over the last LINK_CHECK_TICKS ticks (in lockstep the wall-clock rate means nothing)
+        rate_marks: collections.deque[tuple[int, int]] = collections.deque()  # (seq, n)
+        prev_seq: int | None = None
+        extremes = _Extremes()
         missing = 0  # consecutive IMU samples not received
         while True:
             try:
@@ -205,6 +226,8 @@ class FlightLoop:
                 break
             missing = 0
             t_ns = imu.seq * self.period_ns if opts.lockstep else imu.t_ns
+            gap_s = 0.0 if prev_seq is None else (imu.seq - prev_seq) * self.period_ns * 1e-9
+            prev_seq = imu.seq
             self.now_ns = t_ns
             if t0_s is None:  # lockstep: the board's own clock, sample k at k periods
                 wall_start = time.perf_counter()
@@ -263,9 +286,18 @@ class FlightLoop:
             if n % LINK_CHECK_TICKS == 0:
                 self._exchange_with_operators(battery_v)
                 stats = self.imu.link_stats()
-                # in lockstep the loop itself sets the pace: a wall-clock rate means nothing
+                # the newest mark at least a window old is the window's start
+                while len(rate_marks) > 1 and \
+                        imu.seq - rate_marks[1][0] >= IMU_RATE_WINDOW_SAMPLES:
+                    rate_marks.popleft()
+                if rate_marks and imu.seq > rate_marks[0][0]:
+                    seq0, n0 = rate_marks[0]
+                    self.imu_rate_fraction = (n - n0) / (imu.seq - seq0)
+                rate_marks.append((imu.seq, n))
+                # in lockstep the loop itself sets the pace: judge the rate on sequence gaps
                 link_ok = stats.health is not LinkHealth.LOST and (
-                    opts.lockstep or stats.health is not LinkHealth.RATE_LOW)
+                    self.imu_rate_fraction >= IMU_MIN_RATE_FRACTION if opts.lockstep
+                    else stats.health is not LinkHealth.RATE_LOW)
                 battery = self.imu.battery()
                 battery_v = battery.voltage_v if battery is not None else math.inf
 
@@ -295,8 +327,12 @@ class FlightLoop:
             ground_since_s = (ground_since_s or t_s) if self._near_ground(est_state) else None
             h = self._health(0.0, link_ok, t_s - last_pose_t_s, estimator_ok, servo_health,
                              battery_v, est_state, on_ground, phase, spinning)
+            if sm.state in FLYING:
+                extremes.add(h, gap_s, self.imu_rate_fraction)
+            n_transitions = len(sm.transitions)
             directive = sm.update(t_s, h)
-            if sm.state is not prev_state:
+            # a failsafe in a planned landing stays LANDING but is a transition all the same
+            if sm.state is not prev_state or len(sm.transitions) != n_transitions:
                 if sm.state is FlightState.TAKEOFF:
                     takeoff_t_s = t_s
                     tm = 0.0
@@ -358,6 +394,7 @@ class FlightLoop:
             estimator_fusion_delay_s=self.ukf.fusion_delay_s,
             telemetry_dropped=self._counters["telemetry_dropped"],
             counters=dict(self._counters),
+            health_extremes=extremes.as_dict(),
         )
 
     # -- pieces ----------------------------------------------------------------------------
@@ -435,13 +472,20 @@ class FlightLoop:
         stats = self.imu.link_stats()
         mstats = self.pose.stats()
         start = self.mission.start_pos_w_m
+        # every check that reads the estimate fails until the UKF has initialised: before
+        # that the state is a placeholder (zeros), not a measurement
+        initialized = self.ukf.initialized
         offset = math.dist(est.pos_w_m, start)
-        imu_rate = stats.imu.measured_rate_hz
+        if self.opts.lockstep:  # the loop sets the pace: count the samples that arrived
+            imu_ok = self.imu_rate_fraction >= IMU_MIN_RATE_FRACTION
+            imu_value = (f"{100 * self.imu_rate_fraction:.0f} % of the samples arrived "
+                         "(lockstep: from sequence numbers)")
+        else:
+            imu_rate = stats.imu.measured_rate_hz
+            imu_ok = imu_rate >= IMU_MIN_RATE_FRACTION * self.opts.imu_rate_hz
+            imu_value = f"{imu_rate:.0f} Hz of {self.opts.imu_rate_hz:.0f} Hz"
         checks = [
-            ("flight-ctrl streaming IMU >= 80 % of the set rate",
-             imu_rate >= 0.8 * self.opts.imu_rate_hz or self.opts.lockstep,
-             f"{imu_rate:.0f} Hz of {self.opts.imu_rate_hz:.0f} Hz"
-             + (" (lockstep: paced by the loop)" if self.opts.lockstep else "")),
+            ("flight-ctrl streaming IMU >= 80 % of the set rate", imu_ok, imu_value),
             ("servo answers, multi-turn, at the commanded angle",
              servo is not None and servo.ok and abs(servo.tilt_rad - servo.goal_tilt_rad)
              < math.radians(1.0) if servo is not None and math.isfinite(servo.goal_tilt_rad)
@@ -451,10 +495,11 @@ class FlightLoop:
             ("MoCap sees the body at >= 80 % of its rate",
              t_s - last_pose_t_s < 0.1 and (mstats.rate_hz >= 80.0 or self.opts.lockstep),
              f"{mstats.rate_hz:.0f} Hz, newest pose {1e3 * (t_s - last_pose_t_s):.0f} ms old"),
-            ("estimator converged", self.ukf.initialized and self.ukf.health().ok,
+            ("estimator converged", initialized and self.ukf.health().ok,
              f"flags {self.ukf.health().flags!r}"),
-            ("vehicle at the mission's start position", offset < self.opts.max_start_offset_m,
-             f"{offset * 1e3:.0f} mm away"),
+            ("vehicle at the mission's start position",
+             initialized and offset < self.opts.max_start_offset_m,
+             f"{offset * 1e3:.0f} mm away" if initialized else "no estimate yet"),
             ("configuration validated", True, "session, vehicle and mission files"),
         ]
         self.preflight_report = [(name, bool(ok), value) for name, ok, value in checks]
@@ -523,6 +568,38 @@ class FlightLoop:
         return (f"{self.sm.state.name:9s} t {t_s:7.2f} s  e_p {err:6.1f} mm  alpha "
                 f"{math.degrees(alpha):5.1f} deg  batt {battery_v:5.2f} V  tick "
                 f"{timing:.2f} ms  misses {self.timer.deadline_misses}")
+
+
+class _Extremes:
+    """Running extremes of the health inputs while flying (a few float compares per tick)."""
+
+    def __init__(self) -> None:
+        inf = math.inf
+        self.mocap_age_max_s = self.imu_gap_max_s = self.body_tilt_max_deg = 0.0
+        self.imu_rate_min_fraction = 1.0
+        self.battery_min_v = inf
+        self.pos_min = [inf, inf, inf]
+        self.pos_max = [-inf, -inf, -inf]
+
+    def add(self, h: HealthSnapshot, imu_gap_s: float, imu_rate_fraction: float) -> None:
+        self.mocap_age_max_s = max(self.mocap_age_max_s, h.mocap_age_s)
+        self.imu_gap_max_s = max(self.imu_gap_max_s, imu_gap_s)
+        self.imu_rate_min_fraction = min(self.imu_rate_min_fraction, imu_rate_fraction)
+        self.body_tilt_max_deg = max(self.body_tilt_max_deg, h.body_tilt_deg)
+        self.battery_min_v = min(self.battery_min_v, h.battery_v)
+        lo, hi, p = self.pos_min, self.pos_max, h.pos_w_m
+        for i in range(3):
+            if p[i] < lo[i]:
+                lo[i] = p[i]
+            if p[i] > hi[i]:
+                hi[i] = p[i]
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"mocap_age_max_s": self.mocap_age_max_s, "imu_gap_max_s": self.imu_gap_max_s,
+                "imu_rate_min_fraction": self.imu_rate_min_fraction,
+                "body_tilt_max_deg": self.body_tilt_max_deg,
+                "battery_min_v": self.battery_min_v,
+                "pos_min_w_m": tuple(self.pos_min), "pos_max_w_m": tuple(self.pos_max)}
 
 
 def _mask(flags: tuple[bool, ...]) -> int:

@@ -26,6 +26,7 @@ import contextlib
 import ctypes
 import json
 import logging
+import math
 import os
 import signal
 import sys
@@ -73,34 +74,91 @@ class BackendOptions:
     truth_path: Path | None = None
 
 
+FaultKind = Literal["mocap-dropout", "fc-disconnect", "servo-silent", "battery-sag",
+                    "tilt-kick", "imu-rate", "imu-gap", "mocap-jump"]
+
+
+    """A fault to inject at a simulated time: ``kind@T`` or ``kind@T:VALUE`` (T in seconds).
+
 @dataclass(frozen=True)
 class ScheduledFault:
-    """A fault to inject at a simulated time: ``kind@T`` or ``kind@T:DURATION`` (seconds).
+    Kinds and their VALUE:
 
-    Kinds: ``mocap-dropout`` (markers occluded for DURATION), ``fc-disconnect`` (the
-    Flight-Ctrl cable is pulled), ``servo-silent`` (the servo stops answering)."""
+    - ``mocap-dropout@T:SECONDS``: the markers are occluded for that long;
+    - ``fc-disconnect@T``: the Flight-Ctrl cable is pulled;
+    - ``servo-silent@T``: the servo stops answering;
+    - ``battery-sag@T:VOLTS``: from T on the pack reads VOLTS lower (a failing cell);
+    - ``tilt-kick@T:DEG_S``: from T the body's roll rate is pushed up by DEG_S within
+      ``TILT_KICK_S`` (an impulsive torque, as from a blow to an arm);
+    - ``imu-rate@T:FRACTION``: from T on only FRACTION of the IMU samples reach the host (the
+      others are lost on the wire, spread evenly: a degraded link);
+    - ``imu-gap@T:SECONDS``: every IMU sample of that span is lost on the wire;
+    - ``mocap-jump@T:METRES``: from T on the MoCap reports the body that far off along world x
+      (a marker swap, a recalibrated room).
+    """
 
-    kind: Literal["mocap-dropout", "fc-disconnect", "servo-silent"]
+    kind: FaultKind
     t_s: float
     duration_s: float = 0.0
+    """The VALUE: a duration (s) for ``mocap-dropout`` and ``imu-gap``, else the kind's unit."""
 
-    @classmethod
+    @property
+    def value(self) -> float:
+        return self.duration_s
     def parse(cls, text: str) -> ScheduledFault:
         kind, _, when = text.partition("@")
+
+    @classmethod
         t, _, dur = when.partition(":")
         if kind not in FAULT_KINDS or not t:
-            raise ValueError(f"fault {text!r}: expected KIND@T[:DURATION] with KIND one of "
+            raise ValueError(f"fault {text!r}: expected KIND@T[:VALUE] with KIND one of "
                              f"{', '.join(FAULT_KINDS)}")
         try:
             t_s, dur_s = float(t), float(dur) if dur else 0.0
         except ValueError:
-            raise ValueError(f"fault {text!r}: T and DURATION are seconds") from None
-        if t_s < 0.0 or dur_s < 0.0:
+            raise ValueError(f"fault {text!r}: T and VALUE are numbers") from None
+        if not (math.isfinite(t_s) and math.isfinite(dur_s)):
+            raise ValueError(f"fault {text!r}: T and VALUE must be finite")
+        if t_s < 0.0 or (dur_s < 0.0 and kind not in SIGNED_FAULT_KINDS):
             raise ValueError(f"fault {text!r}: times must be >= 0")
+        if kind == "imu-rate" and not 0.0 <= dur_s <= 1.0:
+            raise ValueError(f"fault {text!r}: FRACTION of the IMU samples in [0, 1]")
+        if kind in ("battery-sag", "imu-rate", "mocap-jump", "tilt-kick") and not dur:
+            raise ValueError(f"fault {text!r}: {kind} needs a VALUE ({kind}@T:VALUE)")
+
+FAULT_KINDS = ("mocap-dropout", "fc-disconnect", "servo-silent", "battery-sag", "tilt-kick",
         return cls(kind, t_s, dur_s)  # type: ignore[arg-type]
 
+               "imu-rate", "imu-gap", "mocap-jump")
+#: a tilt kick acts over this time, in this many equal steps of the body rate
+TILT_KICK_S = 0.05
+TILT_KICK_STEPS = 25
+#: kinds whose VALUE may be negative (a direction)
+SIGNED_FAULT_KINDS = ("tilt-kick", "mocap-jump")
 
-FAULT_KINDS = ("mocap-dropout", "fc-disconnect", "servo-silent")
+
+class ImuWireLoss:
+    """Which IMU samples the scheduled faults lose on the wire (the emulated board's
+    ``imu_wire_fault`` hook, called with each sample's index and simulated time)."""
+
+    def __init__(self, faults: Sequence[ScheduledFault]) -> None:
+        self.gaps = [(f.t_s, f.t_s + f.value) for f in faults if f.kind == "imu-gap"]
+        rates = [(f.t_s, f.value) for f in faults if f.kind == "imu-rate"]
+        self.rate = min(rates) if rates else None  # (from, fraction kept)
+        self._first: int | None = None
+
+    def __call__(self, index: int, t_s: float) -> bool:
+        t = t_s + 1e-9  # the sample times are whole nanoseconds
+        if any(a <= t < b for a, b in self.gaps):
+            return True
+        if self.rate is None or t < self.rate[0]:
+            return False
+        if self._first is None:
+            self._first = index
+        k, keep = index - self._first, self.rate[1]
+        # Bresenham: sample k survives where floor(k keep) steps up, so any n successive
+        # samples keep n * keep of them (+-1)
+        return math.floor((k + 1) * keep + 1e-9) == math.floor(k * keep + 1e-9)
 
 
 @dataclass(frozen=True)
@@ -159,10 +217,13 @@ class _SteppedVehicle:
         #: (simulated time, action) pairs, run once when the time is reached
         self.scheduled: list[tuple[float, Callable[[], None]]] = []
         self.truth: TruthLog | None = None
-
-    def now_s(self) -> float:
+        # scheduled faults that alter what the devices read (not the physics)
+        self.battery_sag_v = 0.0
+        self.mocap_offset_w_m: Vec3 = (0.0, 0.0, 0.0)
         return self.sim.now_s()
 
+
+    def now_s(self) -> float:
     def advance(self, dt_s: float) -> None:
         self.sim.advance(dt_s)
         now = self.sim.now_s()
@@ -194,10 +255,15 @@ class _SteppedVehicle:
         return self.sim.tilt_rad()
 
     def true_pose(self) -> PoseReading:
-        return self.sim.true_pose()
+        pose = self.sim.true_pose()
+        o = self.mocap_offset_w_m
+        if o == (0.0, 0.0, 0.0):
+            return pose
+        p = pose.pos_w_m
+        return PoseReading(pose.t_s, (p[0] + o[0], p[1] + o[1], p[2] + o[2]), pose.q_wb)
 
     def battery_voltage_v(self) -> float:
-        return self.sim.battery_voltage_v()
+        return self.sim.battery_voltage_v() - self.battery_sag_v
 
 
 class EmulatedVehicleBackend:
@@ -240,8 +306,17 @@ class EmulatedVehicleBackend:
         self.vehicle.on_advance.append(self.mocap)
         if opts.truth_path is not None:
             self.vehicle.truth = TruthLog(opts.truth_path)
-        for fault in sorted(opts.faults, key=lambda f: f.t_s):
-            self.vehicle.scheduled.append((fault.t_s, self._fault_action(fault)))
+        actions = []
+        for fault in opts.faults:
+            # a kick is spread over TILT_KICK_S: the IMU sees a real (plausible) rate change
+            # rather than a jump its driver must take for a corrupted byte
+            times = ([fault.t_s + i * TILT_KICK_S / TILT_KICK_STEPS
+                      for i in range(TILT_KICK_STEPS)] if fault.kind == "tilt-kick"
+                     else [fault.t_s])
+            actions += [(t, self._fault_action(fault)) for t in times]
+        self.vehicle.scheduled.extend(sorted(actions, key=lambda a: a[0]))
+        if any(f.kind in ("imu-rate", "imu-gap") for f in opts.faults):
+            self.flight_ctrl.imu_wire_fault = ImuWireLoss(opts.faults)
         self._started = False
 
     def _fault_action(self, fault: ScheduledFault) -> Callable[[], None]:
@@ -250,10 +325,25 @@ class EmulatedVehicleBackend:
             return lambda: self.mocap.occlude(frames)
         if fault.kind == "servo-silent":
             return lambda: self.servo.set_fault(Fault.SILENT)
-        # fc-disconnect: from the Flight-Ctrl's own thread, which is advancing the physics
-        return lambda: threading.Thread(target=self.flight_ctrl.disconnect, daemon=True).start()
+        vehicle = self.vehicle
+        if fault.kind == "battery-sag":
+            def sag() -> None:
+                vehicle.battery_sag_v += fault.value
+            return sag
+        if fault.kind == "mocap-jump":
+            def jump() -> None:
+                o = vehicle.mocap_offset_w_m
+                vehicle.mocap_offset_w_m = (o[0] + fault.value, o[1], o[2])
+            return jump
+        if fault.kind == "tilt-kick":  # one of TILT_KICK_STEPS (see __init__)
+            step = math.radians(fault.value) / TILT_KICK_STEPS
+            return lambda: self.sim.kick_body_rate((step, 0.0, 0.0))
+        if fault.kind in ("imu-rate", "imu-gap"):
+            return lambda: None  # the board's wire hook checks the sample times itself
 
     def start(self) -> list[DeviceAddress]:
+        # fc-disconnect: from the Flight-Ctrl's own thread, which is advancing the physics
+        return lambda: threading.Thread(target=self.flight_ctrl.disconnect, daemon=True).start()
         self.mocap.start(realtime=False)
         self.servo.start()
         self.flight_ctrl.start()
@@ -271,8 +361,16 @@ class EmulatedVehicleBackend:
         for stop in (self.flight_ctrl.stop, self.servo.close, self.mocap.close):
             with contextlib.suppress(Exception):
                 stop()
-        if self.vehicle.truth is not None:
-            self.vehicle.truth.close()
+        self.end_truth_log()
+
+    def end_truth_log(self) -> None:
+        """Write out and close the truth log (idempotent). Called as soon as the ground station
+        is gone, so the log ends at the last tick it flew: the board's free run that follows
+        (the watchdog stopping the motors) is no part of the flight."""
+        with self.lock:  # the Flight-Ctrl thread appends under this lock
+            truth, self.vehicle.truth = self.vehicle.truth, None
+        if truth is not None:
+            truth.close()
 
 
 def _die_with_parent() -> None:
@@ -383,3 +481,4 @@ def _await_watchdog(backend: EmulatedVehicleBackend, link_dir: Path | None) -> N
 
 if __name__ == "__main__":
     sys.exit(main())
+    backend.end_truth_log()  # the flight ended with the ground station's last tick

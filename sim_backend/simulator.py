@@ -357,6 +357,16 @@ class FastHexSimulator:
         x = self._x
         return self.imu.sample(self._t, (x[10], x[11], x[12]), self.specific_force_b())
 
+    def kick_body_rate(self, d_omega_b_rad_s: Vec3) -> None:
+        """Fault hook: an impulsive torque (a blow to the airframe) changes the body rate by
+        ``d_omega_b_rad_s`` at once. No effect while resting on the ground."""
+        if self.landed:
+            return
+        x = self._x
+        x[10] += d_omega_b_rad_s[0]
+        x[11] += d_omega_b_rad_s[1]
+        x[12] += d_omega_b_rad_s[2]
+
     def command_tilt_rad(self, tilt_rad: float) -> None:
         self._servo_goal = min(max(float(tilt_rad), 0.0), self._tilt_max)
 

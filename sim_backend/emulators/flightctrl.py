@@ -215,6 +215,8 @@ class EmulatedFlightCtrl:
         self._stop = threading.Event()
         self._closed = False
         self.sent_imu: deque[SentImu] = deque(maxlen=1_000_000)
+        #: fault hook: (sample index, simulated time s) -> True to lose that ``I`` on the wire
+        self.imu_wire_fault: Callable[[int, float], bool] | None = None
         # board state (owned by the emulator thread once started)
         self._tk3 = framing_tk3.Tk3Parser()
         self._stock = framing_stock.StockParser()
@@ -571,7 +573,10 @@ class EmulatedFlightCtrl:
         def record(altered: bool, wire: bytes) -> None:
             self.sent_imu.append(SentImu(total, t_ns, msg, altered, wire))
 
-        self._send(framing_tk3.encode_frame(encoded), record if self.config.record_truth else None)
+        frame = framing_tk3.encode_frame(encoded)
+        if self.imu_wire_fault is not None and self.imu_wire_fault(total, t_ns / _NS):
+            frame = frame[:-1] + b"!"  # aborted on the wire: the host sees a framing error
+        self._send(frame, record if self.config.record_truth else None)
         self._imu_total += 1
         self._count("imu_sent")
 

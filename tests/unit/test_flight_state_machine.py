@@ -138,3 +138,158 @@ def test_that_takeoff_waits_until_every_motor_spins() -> None:
     starting = replace(OK, mission_phase="takeoff", on_ground=True, motors_spinning=False)
     assert sm.update(3.0, starting).state is FlightState.ARMED  # past spin_up_s, not spinning
     assert sm.update(3.1, replace(starting, motors_spinning=True)).state is FlightState.TAKEOFF
+
+
+# -- each limit on both sides of its boundary (a value at the limit is inside) ---------------
+@pytest.mark.parametrize(("inside", "outside"), [
+    ({"mocap_age_s": 1.0}, {"mocap_age_s": 1.0 + 1e-9}),
+    ({"body_tilt_deg": 40.0}, {"body_tilt_deg": 40.0 + 1e-9}),
+    ({"battery_v": 14.0}, {"battery_v": 14.0 - 1e-9}),
+    ({"pos_w_m": (2.0, 0.0, 1.0)}, {"pos_w_m": (2.0 + 1e-9, 0.0, 1.0)}),
+    ({"pos_w_m": (-2.0, 0.0, 1.0)}, {"pos_w_m": (-2.0 - 1e-9, 0.0, 1.0)}),
+    ({"pos_w_m": (0.0, 2.0, 1.0)}, {"pos_w_m": (0.0, 2.0 + 1e-9, 1.0)}),
+    ({"pos_w_m": (0.0, -2.0, 1.0)}, {"pos_w_m": (0.0, -2.0 - 1e-9, 1.0)}),
+    ({"pos_w_m": (0.0, 0.0, 2.5)}, {"pos_w_m": (0.0, 0.0, 2.5 + 1e-9)}),
+    ({"pos_w_m": (0.0, 0.0, -0.2)}, {"pos_w_m": (0.0, 0.0, -0.2 - 1e-9)}),
+])
+def test_that_a_value_at_a_limit_flies_on_and_one_beyond_it_lands(
+        inside: dict[str, Any], outside: dict[str, Any]) -> None:
+    sm = _flying()
+    assert sm.update(10.0, replace(OK, **inside)).state is FlightState.MISSION
+    assert sm.faults == [] and len(sm.transitions) == 3
+    d = sm.update(10.002, replace(OK, **outside))
+    assert (d.state, d.reference) == (FlightState.LANDING, ReferenceSource.LAND_HERE)
+    assert sm.transitions[-1].t_s == 10.002 and sm.transitions[-1].reason.startswith("failsafe")
+    assert sm.faults[0].startswith("10.002 s: ")
+
+
+def test_that_the_imu_age_at_its_timeout_flies_on_and_beyond_it_cuts() -> None:
+    sm = _flying()
+    assert sm.update(10.0, replace(OK, imu_age_s=0.05)).state is FlightState.MISSION
+    d = sm.update(10.002, replace(OK, imu_age_s=0.05 + 1e-9))
+    assert (d.state, d.motors_on, d.reference) == (FlightState.CUT, False, ReferenceSource.NONE)
+    assert sm.transitions[-1].reason == "IMU/link lost: motors stop"
+    assert sm.faults == ["10.002 s: IMU stream lost (age 50 ms)"]
+
+
+def test_that_a_low_imu_rate_cuts_and_a_lost_link_is_named() -> None:
+    sm = _flying()
+    assert sm.update(10.0, replace(OK, imu_rate_ok=False)).state is FlightState.CUT
+    assert sm.faults == ["10.000 s: IMU rate below 80 % of the set rate"]
+    sm = _flying()
+    sm.update(10.0, replace(OK, imu_age_s=float("inf")))
+    assert sm.faults == ["10.000 s: Flight-Ctrl link lost"]
+    assert sm.update(10.002, OK).state is FlightState.DISARMED
+    assert sm.transitions[-1].reason == "motors stopped"
+
+
+def test_that_on_the_ground_armed_only_a_lost_imu_acts() -> None:
+    sm = FlightStateMachine(LIMITS)
+    sm.request(0.0, "arm")
+    bad = replace(OK, mission_phase="takeoff", motors_spinning=False, mocap_age_s=5.0,
+                  battery_v=1.0, body_tilt_deg=90.0, estimator_ok=False,
+                  servo=ServoHealth.FAULT, pos_w_m=(9.0, 9.0, 9.0))
+    assert sm.update(0.5, bad).state is FlightState.ARMED and sm.faults == []
+    assert sm.update(0.6, replace(bad, imu_rate_ok=False)).state is FlightState.CUT
+
+
+def test_that_the_failsafes_are_checked_in_order_and_only_in_flight() -> None:
+    sm = FlightStateMachine(LIMITS)
+    assert sm.update(0.0, replace(OK, imu_age_s=1.0, battery_v=0.0)).state \
+        is FlightState.PREFLIGHT  # nothing to stop before arming
+    sm = _flying()
+    sm.update(10.0, replace(OK, mocap_age_s=2.0, estimator_ok=False, battery_v=1.0))
+    assert sm.transitions[-1].reason == "failsafe: MoCap lost for 2.00 s (> 1 s)"
+    sm = _flying()
+    sm.update(10.0, replace(OK, estimator_ok=False, body_tilt_deg=80.0))
+    assert sm.transitions[-1].reason == "failsafe: estimator unhealthy"
+    sm = _flying()
+    sm.update(10.0, replace(OK, pos_w_m=(3.0, 0.0, 1.0), body_tilt_deg=80.0))
+    assert sm.transitions[-1].reason.startswith("failsafe: geofence")
+    sm = _flying()
+    sm.update(10.0, replace(OK, body_tilt_deg=80.0, battery_v=1.0))
+    assert sm.transitions[-1].reason.startswith("failsafe: body tilt")
+    sm = _flying()
+    sm.update(10.0, replace(OK, battery_v=1.0, servo=ServoHealth.FAULT))
+    assert sm.transitions[-1].reason.startswith("failsafe: battery low")
+
+
+def test_that_a_degraded_servo_flies_on_and_a_held_tilt_is_not_reported_twice() -> None:
+    sm = _flying(servo_fault_action="hold")
+    assert sm.update(10.0, replace(OK, servo=ServoHealth.DEGRADED)).hold_tilt is False
+    sm.update(10.002, replace(OK, servo=ServoHealth.FAULT))
+    d = sm.update(10.004, replace(OK, servo=ServoHealth.FAULT))
+    assert (d.state, d.hold_tilt) == (FlightState.MISSION, True)
+    assert len(sm.faults) == 1
+    # and with the tilt held, a later servo fault does not land either
+    assert sm.update(10.006, replace(OK, servo=ServoHealth.FAULT)).state is FlightState.MISSION
+
+
+def test_that_a_failsafe_in_the_planned_landing_switches_to_landing_here_once() -> None:
+    sm = _flying()
+    d = sm.update(20.0, replace(OK, mission_phase="land"))
+    assert (d.state, d.reference) == (FlightState.LANDING, ReferenceSource.MISSION)
+    d = sm.update(20.5, replace(OK, mission_phase="land", battery_v=13.0))
+    assert (d.state, d.reference, d.motors_on) == (FlightState.LANDING,
+                                                   ReferenceSource.LAND_HERE, True)
+    last = sm.transitions[-1]
+    assert (last.t_s, last.from_state, last.to_state, last.reason) == (
+        20.5, FlightState.LANDING, FlightState.LANDING, "failsafe: battery low (13.00 V < 14 V)")
+    sm.update(20.6, replace(OK, mission_phase="land", battery_v=12.0))
+    assert len(sm.transitions) == 5 and len(sm.faults) == 1
+    assert sm.update(21.0, replace(OK, on_ground=True)).state is FlightState.DISARMED
+
+
+def test_that_a_failsafe_with_the_action_cut_in_a_landing_cuts() -> None:
+    sm = _flying(failsafe_action="cut")
+    sm.update(20.0, replace(OK, mission_phase="land"))
+    d = sm.update(20.5, replace(OK, mission_phase="land", body_tilt_deg=50.0))
+    assert (d.state, d.motors_on) == (FlightState.CUT, False)
+    assert sm.transitions[-1].reason == "failsafe (cut): body tilt 50.0 deg > 40 deg"
+
+
+def test_that_spin_up_takes_its_time_and_takeoff_ends_with_its_phase() -> None:
+    sm = FlightStateMachine(LIMITS)
+    sm.request(1.0, "arm")
+    takeoff = replace(OK, mission_phase="takeoff")
+    assert sm.update(1.999, takeoff).state is FlightState.ARMED
+    assert sm.update(2.0, takeoff).state is FlightState.TAKEOFF
+    assert sm.update(2.002, takeoff).state is FlightState.TAKEOFF
+    assert sm.update(2.004, OK).state is FlightState.MISSION
+    assert sm.update(2.006, replace(OK, mission_phase="done")).state is FlightState.LANDING
+    assert sm.update(2.008, replace(OK, mission_phase="done")).reference is \
+        ReferenceSource.MISSION
+    assert not sm.finished
+    assert sm.update(2.010, replace(OK, mission_phase="done", on_ground=True)).state \
+        is FlightState.DISARMED
+    assert sm.finished
+
+
+@pytest.mark.parametrize(("state_path", "what", "answer", "to"), [
+    ((), "land", (True, "session ended"), FlightState.DISARMED),
+    ((), "stop", (True, "session ended"), FlightState.DISARMED),
+    ((), "cut", (False, "motors are not running (PREFLIGHT)"), FlightState.PREFLIGHT),
+    (("arm",), "land", (True, "disarmed"), FlightState.DISARMED),
+    (("arm",), "cut", (True, "motors cut"), FlightState.CUT),
+    (("arm",), "disarm", (True, "disarmed"), FlightState.DISARMED),
+    (("arm", "disarm"), "disarm", (False, "already disarmed"), FlightState.DISARMED),
+    (("arm", "disarm"), "land", (False, "already DISARMED"), FlightState.DISARMED),
+])
+def test_that_operator_requests_on_the_ground_do_what_they_say(
+        state_path: tuple[str, ...], what: Any, answer: tuple[bool, str],
+        to: FlightState) -> None:
+    sm = FlightStateMachine(LIMITS)
+    for step in state_path:
+        sm.request(0.0, step)  # type: ignore[arg-type]
+    assert sm.request(0.5, what) == answer
+    assert sm.state is to
+
+
+def test_that_operator_land_in_a_landing_is_refused_and_stop_then_cuts() -> None:
+    sm = _flying()
+    sm.update(20.0, replace(OK, mission_phase="land"))
+    assert sm.request(20.1, "land") == (False, "already LANDING")
+    assert sm.request(20.2, "stop") == (False, "already LANDING")
+    assert sm.request(20.3, "stop") == (True, "motors cut")
+    assert sm.transitions[-1].reason == "operator: second stop request"
+    assert sm.request(20.4, "stop") == (False, "already CUT")
