@@ -78,10 +78,10 @@ FaultKind = Literal["mocap-dropout", "fc-disconnect", "servo-silent", "battery-s
                     "tilt-kick", "imu-rate", "imu-gap", "mocap-jump"]
 
 
-    """A fault to inject at a simulated time: ``kind@T`` or ``kind@T:VALUE`` (T in seconds).
-
 @dataclass(frozen=True)
 class ScheduledFault:
+    """A fault to inject at a simulated time: ``kind@T`` or ``kind@T:VALUE`` (T in seconds).
+
     Kinds and their VALUE:
 
     - ``mocap-dropout@T:SECONDS``: the markers are occluded for that long;
@@ -105,10 +105,10 @@ class ScheduledFault:
     @property
     def value(self) -> float:
         return self.duration_s
-    def parse(cls, text: str) -> ScheduledFault:
-        kind, _, when = text.partition("@")
 
     @classmethod
+    def parse(cls, text: str) -> ScheduledFault:
+        kind, _, when = text.partition("@")
         t, _, dur = when.partition(":")
         if kind not in FAULT_KINDS or not t:
             raise ValueError(f"fault {text!r}: expected KIND@T[:VALUE] with KIND one of "
@@ -125,10 +125,10 @@ class ScheduledFault:
             raise ValueError(f"fault {text!r}: FRACTION of the IMU samples in [0, 1]")
         if kind in ("battery-sag", "imu-rate", "mocap-jump", "tilt-kick") and not dur:
             raise ValueError(f"fault {text!r}: {kind} needs a VALUE ({kind}@T:VALUE)")
-
-FAULT_KINDS = ("mocap-dropout", "fc-disconnect", "servo-silent", "battery-sag", "tilt-kick",
         return cls(kind, t_s, dur_s)  # type: ignore[arg-type]
 
+
+FAULT_KINDS = ("mocap-dropout", "fc-disconnect", "servo-silent", "battery-sag", "tilt-kick",
                "imu-rate", "imu-gap", "mocap-jump")
 #: a tilt kick acts over this time, in this many equal steps of the body rate
 TILT_KICK_S = 0.05
@@ -220,10 +220,10 @@ class _SteppedVehicle:
         # scheduled faults that alter what the devices read (not the physics)
         self.battery_sag_v = 0.0
         self.mocap_offset_w_m: Vec3 = (0.0, 0.0, 0.0)
-        return self.sim.now_s()
-
 
     def now_s(self) -> float:
+        return self.sim.now_s()
+
     def advance(self, dt_s: float) -> None:
         self.sim.advance(dt_s)
         now = self.sim.now_s()
@@ -340,10 +340,10 @@ class EmulatedVehicleBackend:
             return lambda: self.sim.kick_body_rate((step, 0.0, 0.0))
         if fault.kind in ("imu-rate", "imu-gap"):
             return lambda: None  # the board's wire hook checks the sample times itself
-
-    def start(self) -> list[DeviceAddress]:
         # fc-disconnect: from the Flight-Ctrl's own thread, which is advancing the physics
         return lambda: threading.Thread(target=self.flight_ctrl.disconnect, daemon=True).start()
+
+    def start(self) -> list[DeviceAddress]:
         self.mocap.start(realtime=False)
         self.servo.start()
         self.flight_ctrl.start()
@@ -466,6 +466,7 @@ def _await_watchdog(backend: EmulatedVehicleBackend, link_dir: Path | None) -> N
     motor, as the real board would, and leave a note of it in ``link_dir/emulator-exit.json``."""
     import time
 
+    backend.end_truth_log()  # the flight ended with the ground station's last tick
     deadline = time.monotonic() + 10.0
     fc = backend.flight_ctrl
     while time.monotonic() < deadline and any(s > 0.0 for s in fc.commanded_rotor_speeds_hz()):
@@ -481,4 +482,3 @@ def _await_watchdog(backend: EmulatedVehicleBackend, link_dir: Path | None) -> N
 
 if __name__ == "__main__":
     sys.exit(main())
-    backend.end_truth_log()  # the flight ended with the ground station's last tick
