@@ -59,38 +59,45 @@ class EstimatorConfig:
                             doc="how far back a late pose can still be fused")
     max_imu_rate_hz: float = spec(1000.0, gt=0.0, le=10000.0, doc="sizes the history ring")
     # -- gating ---------------------------------------------------------------------------------
-    gate_nis: float = spec(22.46, gt=0.0, doc="chi2 gate on the 6-D pose innovation "
+    # (the upper bounds from here on are sanity caps: a value past them is a typo, not a tuning;
+    # a gate over chi2 = 1000 accepts anything, sigmas beyond metres/radians start the filter lost)
+    gate_nis: float = spec(22.46, ge=1.0, le=1000.0, doc="chi2 gate on the 6-D pose innovation "
                            "(22.46 = chi2_6(0.999))")
     max_consecutive_rejections: int = spec(25, ge=1, le=100000,
                                            doc="then reset position and attitude to MoCap")
     # -- sigma points (van der Merwe scaled) ----------------------------------------------------
     sigma_alpha: float = spec(0.5, gt=0.0, le=1.0)
-    sigma_beta: float = spec(2.0, ge=0.0)
-    sigma_kappa: float = spec(0.0, ge=0.0)
+    sigma_beta: float = spec(2.0, ge=0.0, le=10.0)  # 2 is optimal for Gaussians
+    sigma_kappa: float = spec(0.0, ge=0.0, le=100.0)
     # -- initialisation -------------------------------------------------------------------------
     init_rest_s: float = spec(0.5, gt=0.0, le=60.0, doc="rest period that starts the filter")
-    init_min_poses: int = spec(10, ge=1, doc="MoCap poses needed during the rest period")
-    rest_gyro_std_rad_s: float = spec(0.05, gt=0.0, doc="above this the vehicle is not at rest")
-    rest_accel_std_m_s2: float = spec(1.0, gt=0.0, doc="above this the vehicle is not at rest")
-    rest_pos_spread_m: float = spec(0.01, gt=0.0, doc="MoCap spread allowed during the rest")
-    init_pos_sigma_m: float = spec(0.01, gt=0.0)
-    init_vel_sigma_m_s: float = spec(0.05, gt=0.0)
+    init_min_poses: int = spec(10, ge=1, le=100000, doc="MoCap poses needed during the rest period")
+    rest_gyro_std_rad_s: float = spec(0.05, gt=0.0, le=1.0,
+                                      doc="above this the vehicle is not at rest")
+    rest_accel_std_m_s2: float = spec(1.0, gt=0.0, le=10.0,
+                                      doc="above this the vehicle is not at rest")
+    rest_pos_spread_m: float = spec(0.01, gt=0.0, le=1.0,
+                                    doc="MoCap spread allowed during the rest")
+    init_pos_sigma_m: float = spec(0.01, gt=0.0, le=10.0)
+    init_vel_sigma_m_s: float = spec(0.05, gt=0.0, le=10.0)
     init_att_sigma_deg: float = spec(2.0, gt=0.0, le=90.0)
-    init_gyro_bias_sigma_rad_s: float = spec(0.02, gt=0.0)
-    init_accel_bias_sigma_m_s2: float = spec(0.2, gt=0.0)
+    init_gyro_bias_sigma_rad_s: float = spec(0.02, gt=0.0, le=1.0)
+    init_accel_bias_sigma_m_s2: float = spec(0.2, gt=0.0, le=10.0)
     # -- covariance health ----------------------------------------------------------------------
-    min_variance: float = spec(1e-14, gt=0.0, doc="floor of every diagonal element of P")
-    max_pos_sigma_m: float = spec(10.0, gt=0.0, doc="cap of the position sigma")
-    diverged_pos_sigma_m: float = spec(0.5, gt=0.0, doc="above this -> DIVERGED")
-    diverged_att_sigma_deg: float = spec(10.0, gt=0.0, doc="above this -> DIVERGED")
-    max_gyro_bias_rad_s: float = spec(0.2, gt=0.0, doc="above this -> GYRO_BIAS_OUT_OF_RANGE")
-    max_accel_bias_m_s2: float = spec(1.5, gt=0.0, doc="above this -> ACCEL_BIAS_OUT_OF_RANGE")
+    min_variance: float = spec(1e-14, gt=0.0, le=1e-6, doc="floor of every diagonal element of P")
+    max_pos_sigma_m: float = spec(10.0, gt=0.0, le=1000.0, doc="cap of the position sigma")
+    diverged_pos_sigma_m: float = spec(0.5, gt=0.0, le=100.0, doc="above this -> DIVERGED")
+    diverged_att_sigma_deg: float = spec(10.0, gt=0.0, le=180.0, doc="above this -> DIVERGED")
+    max_gyro_bias_rad_s: float = spec(0.2, gt=0.0, le=10.0,
+                                      doc="above this -> GYRO_BIAS_OUT_OF_RANGE")
+    max_accel_bias_m_s2: float = spec(1.5, gt=0.0, le=20.0,
+                                      doc="above this -> ACCEL_BIAS_OUT_OF_RANGE")
     # -- external-force observer ----------------------------------------------------------------
     force_observer: bool = spec(True, doc="estimate the unmodelled external force")
-    mass_kg: float = spec(3.1, gt=0.0, doc="vehicle mass (paper Table I)")
-    force_walk_n_sqrt_s: float = spec(0.4, gt=0.0,
+    mass_kg: float = spec(3.1, ge=0.1, le=100.0, doc="vehicle mass (paper Table I)")
+    force_walk_n_sqrt_s: float = spec(0.4, gt=0.0, le=100.0,
                                       doc="random-walk density of the external force")
-    init_force_sigma_n: float = spec(2.0, gt=0.0)
+    init_force_sigma_n: float = spec(2.0, gt=0.0, le=1000.0)
     force_cmd_lag_s: float = spec(0.0, ge=0.0, le=1.0,
                                   doc="first-order lag from commanded to produced body force "
                                       "(rotor dynamics); 0: the command is produced at once")

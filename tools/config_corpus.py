@@ -565,6 +565,16 @@ def _reference_and_cross_cases(b: _Builder) -> None:
     p = preset.replace("mocap_latency_s: 0.01", "mocap_latency_s: 0.3")
     b.session_error("MoCap latency beyond the estimator's history",
                     sess(disturbances="preset.yaml"), None, {"preset.yaml": p})
+    # estimator numbers a session may set (absent from the shipped sessions)
+    est_line = _line(session, "estimator:") + 1
+    for key, value in (("gate_nis", "1e6"), ("gate_nis", "0"), ("sigma_beta", "1e9"),
+                       ("init_pos_sigma_m", "1e4"), ("min_variance", "1"), ("mass_kg", "0"),
+                       ("mocap_stale_s", "0"), ("history_s", "1e-12"), ("init_rest_s", "1e5"),
+                       ("force_walk_n_sqrt_s", "1e9"), ("max_pos_sigma_m", ".inf"),
+                       ("diverged_att_sigma_deg", "720")):
+        b.session_error(f"estimator.{key} = {value} (absurd)",
+                        session.replace("estimator:\n", f"estimator:\n  {key}: {value}\n", 1),
+                        est_line)
     b.session_error("IMU timeout shorter than two IMU periods",
                     sess(imu_timeout_s="0.002"), _line(session, "imu_timeout_s"))
     b.session_error("IMU timeout of one period at 500 Hz", sess(imu_timeout_s="0.003"),
