@@ -94,7 +94,7 @@ def fly_long_hover_in_own_group(tmp: str) -> None:
             rest[1:2] = [link_dir / "truth.f64"]
             super().__init__(cfg, vehicle, start, link_dir, *rest, **kwargs)
 
-    session_module.EmulatorProcess = EmulatorWithTruth  # type: ignore[misc]
+    session_module.EmulatorProcess = EmulatorWithTruth  # type: ignore[misc,assignment]
     tmp_path = Path(tmp)
     (tmp_path / "long-hover.yaml").write_text(MISSION)
     (tmp_path / "session.yaml").write_text(SESSION)
