@@ -57,9 +57,13 @@ def main() -> int:
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--hogs", type=int, default=os.cpu_count() or 2)
     ap.add_argument("--no-realtime-settings", action="store_true")
+    ap.add_argument("--keep", default=None, metavar="DIR",
+                    help="keep the records and events of every flight in DIR")
     args = ap.parse_args()
     extra = ["--no-realtime-settings"] if args.no_realtime_settings else []
-    with tempfile.TemporaryDirectory(prefix="bench-loaded-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="bench-loaded-") as scratch:
+        tmp = args.keep or scratch
+        Path(tmp).mkdir(parents=True, exist_ok=True)
         base = fly(args.session, Path(tmp) / "baseline.fhr", extra)
         print(line("baseline", base), flush=True)
         ok = 0
@@ -76,6 +80,9 @@ def main() -> int:
                     h.terminate()
                     h.join()
             print(line(f"loaded {i + 1}", r), flush=True)
+            if r.get("exit_code") != 0:
+                for fault in r.get("faults", []):
+                    print(f"           fault {fault}", flush=True)
             ok += r.get("exit_code") == 0  # the flight ended as planned
         print(f"{ok} of {args.runs} loaded flights completed their mission "
               f"({args.hogs} busy loops)")

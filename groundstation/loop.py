@@ -71,6 +71,9 @@ TOUCHDOWN_CONFIRM_S = 0.4
 #: lockstep: wall time after which a sample counts as lost, and the slice to check the link
 LOCKSTEP_LOST_S = 0.1
 LOCKSTEP_SLICE_S = 0.003
+#: realtime: longest single wait for an IMU sample; a gap is bridged by resending the last
+#: command at least this often until it exceeds the session's imu_timeout_s
+IMU_GAP_SLICE_S = 0.01
 #: ticks between two evaluations of the preflight checks (0.1 s at 500 Hz)
 PREFLIGHT_CHECK_TICKS = 50
 
@@ -141,11 +144,13 @@ class FlightLoop:
         self.command_queue: Any = None
         self._c_f = params.rotors.thrust_coeff_n_per_hz2
         self._counters = {"telemetry_dropped": 0, "imu_missing": 0, "poses_fused": 0,
-                          "servo_sync_failures": 0}
+                          "servo_sync_failures": 0, "imu_gap_max_us": 0,
+                          "imu_gap_max_at_ms": 0}
         self._rx_errors = 0
         #: received / expected IMU samples over the last rate window (lockstep: from sequence
         #: numbers, so a degraded link is caught on the simulated clock too)
         self.imu_rate_fraction = 1.0
+        self._longest_gap_ns = 0
 
     # -- the loop --------------------------------------------------------------------------
     def run(self) -> LoopResult:
@@ -179,10 +184,15 @@ class FlightLoop:
         rate_marks: collections.deque[tuple[int, int]] = collections.deque()  # (seq, n)
         prev_seq: int | None = None
         extremes = _Extremes()
-        missing = 0  # consecutive IMU samples not received
+        missing = 0  # consecutive IMU samples not received (lockstep) or empty waits
+        last_arrival_ns = 0  # host monotonic time of the newest IMU sample (realtime)
+        # Realtime: wait in short slices, so that during a gap the last command goes out at
+        # least every slice (the board's motor watchdog stays fed) and the gap is measured on
+        # the host clock; only a gap longer than imu_timeout_s is a lost stream.
+        wait_s = timeout_s if opts.lockstep else min(timeout_s, IMU_GAP_SLICE_S)
         while True:
             try:
-                imu = self._next_imu(timeout_s)
+                imu = self._next_imu(wait_s)
             except DeviceLostError as exc:
                 imu = None
                 lost_link = str(exc)
@@ -195,8 +205,10 @@ class FlightLoop:
                     # A lost or corrupted sample: the emulated board steps on every `w`, so
                     # answer as a real host would at its control period (hold the output).
                     age = missing * self.period_ns * 1e-9
+                elif last_arrival_ns:
+                    age = (time.monotonic_ns() - last_arrival_ns) * 1e-9
                 else:
-                    age = missing * timeout_s
+                    age = missing * wait_s
                 if t0_s is None and not lost_link and age < 2.0:
                     if opts.lockstep:
                         self.imu.send_rotor_speeds_hz(last_spins)
@@ -225,6 +237,14 @@ class FlightLoop:
                     sm.update(t_s, h)
                 break
             missing = 0
+            if not opts.lockstep:
+                if last_arrival_ns:
+                    gap_ns = imu.arrival_t_ns - last_arrival_ns
+                    if gap_ns > self._longest_gap_ns:
+                        self._longest_gap_ns = gap_ns
+                        self._counters["imu_gap_max_us"] = gap_ns // 1000
+                        self._counters["imu_gap_max_at_ms"] = round(t_s * 1e3)
+                last_arrival_ns = imu.arrival_t_ns
             t_ns = imu.seq * self.period_ns if opts.lockstep else imu.t_ns
             gap_s = 0.0 if prev_seq is None else (imu.seq - prev_seq) * self.period_ns * 1e-9
             prev_seq = imu.seq

@@ -119,6 +119,8 @@ class EmulatorProcess:
                                      stderr=None, text=True, start_new_session=True)
         self.devices: dict[str, str] = {}
         self.realtime_settings = ""  # what the emulator's real-time settings came to
+        #: the emulated board's counters when it stopped (``EmulatorStats`` fields)
+        self.exit_stats: dict[str, int] = {}
         deadline = time.monotonic() + 60.0
         assert self.proc.stdout is not None
         while time.monotonic() < deadline:
@@ -147,6 +149,11 @@ class EmulatorProcess:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait(timeout=5.0)
+            with contextlib.suppress(OSError, ValueError):
+                assert self.proc.stdout is not None
+                for line in self.proc.stdout.read().splitlines():
+                    with contextlib.suppress(ValueError, AttributeError):
+                        self.exit_stats = dict(json.loads(line)["exit"])
 
 
 def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
@@ -411,12 +418,24 @@ class FlightSession:
                 ring.close()
             if self.emulator is not None:
                 self.emulator.close()
+                self._note_emulator_stats()
                 if lockstep and truth_path is not None and truth_path.exists():
                     with contextlib.suppress(Exception):
                         merge_truth(self.record_path, truth_path, backend.imu_rate_hz)
             if self._tmp is not None:
                 self._tmp.cleanup()
 
+
+    def _note_emulator_stats(self) -> None:
+        """The emulated board's view of the link, appended to the events file."""
+        st = self.emulator.exit_stats if self.emulator is not None else {}
+        if not st or not self.events_path.exists():
+            return
+        keys = ("imu_sent", "spin_commands", "stream_slips", "watchdog_trips", "tx_overruns",
+                "malformed_received", "frame_errors_received")
+        with contextlib.suppress(OSError), self.events_path.open("a", encoding="utf-8") as ev:
+            ev.write("emulated board at exit: " + ", ".join(
+                f"{k.replace('_', ' ')} {st[k]}" for k in keys if k in st) + "\n")
 
     def _check_interrupted(self, stage: str) -> None:
         """A stop signal during start-up ends the session there: nothing is armed yet."""

@@ -24,10 +24,12 @@ from __future__ import annotations
 import argparse
 import contextlib
 import ctypes
+import dataclasses
 import json
 import logging
 import math
 import os
+import select
 import signal
 import sys
 import threading
@@ -41,6 +43,7 @@ import numpy as np
 from config import find_config
 from config.schema import load_config
 from controller.params import VEHICLE_SCHEMA, VehicleParams
+from drivers.realtime import apply_realtime_settings, settings_line
 from sim_backend.disturbances import DISTURBANCES_SCHEMA, DisturbancePreset
 from sim_backend.emulators.dynamixel_p1 import EmulatedMX28, Fault
 from sim_backend.emulators.flightctrl import (
@@ -399,6 +402,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--watchdog-s", type=float, default=0.25)
     ap.add_argument("--truth", type=Path, default=None,
                     help="log the true state at every IMU sample to this file")
+    ap.add_argument("--realtime-settings", choices=("on", "off"), default="on",
+                    help="realtime clock: pin to the first CPU, SCHED_FIFO, locked memory "
+                    "(each where permitted)")
     ap.add_argument("--fault", action="append", default=[], metavar="KIND@T[:D]",
                     help=f"inject a fault at simulated time T ({', '.join(FAULT_KINDS)})")
     args = ap.parse_args(argv)
@@ -420,21 +426,24 @@ def main(argv: list[str] | None = None) -> int:
         wire_faults=WireFaults(corrupt_prob=args.corrupt_prob, seed=args.seed),
         watchdog_s=args.watchdog_s, faults=faults, truth_path=args.truth,
     ))
-    stop = threading.Event()
-    orphaned = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-
-    def _parent_died(*_: object) -> None:
-        orphaned.set()
-        stop.set()
-
-    signal.signal(signal.SIGUSR1, _parent_died)
+    stop = _StopFlags()
+    # Handlers only set a flag; the C-level wake-up byte ends the main thread's wait at once.
+    # (``threading.Event.set`` from a handler can deadlock on the lock the interrupted main
+    # thread holds inside ``Event.wait``.)
+    signal.set_wakeup_fd(stop.wake_fd, warn_on_full_buffer=False)
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, stop.on_stop_signal)
+    signal.signal(signal.SIGUSR1, stop.on_parent_death)
     try:
         for dev in backend.start():
             print(json.dumps({"device": dev.device, "kind": dev.kind, "address": dev.address}),
                   flush=True)
-        print(json.dumps({"ready": True, "t_s": backend.sim.now_s()}), flush=True)
+        realtime = ""
+        if args.clock == "realtime" and args.realtime_settings == "on":
+            # the first CPU: the ground station pins itself to the last one
+            realtime = settings_line(apply_realtime_settings(cpu=0, freeze_gc=False))
+        print(json.dumps({"ready": True, "t_s": backend.sim.now_s(), "realtime": realtime}),
+              flush=True)
 
         def _watch_stdin() -> None:
             # "quit" is the parent's orderly stop; end of input without it means the parent
@@ -442,22 +451,62 @@ def main(argv: list[str] | None = None) -> int:
             with contextlib.suppress(Exception):
                 for line in sys.stdin:
                     if line.strip() == "quit":
-                        stop.set()
+                        stop.request(orphaned=False)
                         return
-            orphaned.set()
-            stop.set()
+            stop.request(orphaned=True)
 
         if not sys.stdin.isatty():
             threading.Thread(target=_watch_stdin, daemon=True).start()
         while not stop.wait(0.5):
             if os.getppid() != parent:
-                orphaned.set()
+                stop.orphaned = True
                 break
-        if orphaned.is_set() or os.getppid() != parent:
+        if stop.orphaned or os.getppid() != parent:
             _await_watchdog(backend, args.link_dir)
     finally:
         backend.stop()
+        # the board's counters, for the ground station's events (stream slips: the emulator
+        # fell behind its own clock; watchdog trips: no `w` for the watchdog time)
+        with contextlib.suppress(Exception):
+            print(json.dumps({"exit": dataclasses.asdict(backend.flight_ctrl.stats())}),
+                  flush=True)
     return 0
+
+
+class _StopFlags:
+    """Why and when the emulator stops, set from signal handlers and the stdin watcher without
+    a lock: plain attributes plus a self-pipe that wakes :meth:`wait`."""
+
+    def __init__(self) -> None:
+        self.stop = False
+        self.orphaned = False
+        self._r, self.wake_fd = os.pipe()
+        os.set_blocking(self._r, False)
+        os.set_blocking(self.wake_fd, False)
+
+    def on_stop_signal(self, signum: int, frame: object) -> None:
+        self.stop = True
+
+    def on_parent_death(self, signum: int, frame: object) -> None:
+        self.orphaned = True
+        self.stop = True
+
+    def request(self, *, orphaned: bool) -> None:
+        """From a thread: stop (the parent died, or it asked with ``quit``)."""
+        if orphaned:
+            self.orphaned = True
+        self.stop = True
+        with contextlib.suppress(OSError):
+            os.write(self.wake_fd, b"\0")
+
+    def wait(self, timeout_s: float) -> bool:
+        if not self.stop:
+            with contextlib.suppress(OSError):
+                ready, _, _ = select.select([self._r], [], [], timeout_s)
+                if ready:
+                    with contextlib.suppress(OSError):
+                        os.read(self._r, 512)
+        return self.stop
 
 
 def _await_watchdog(backend: EmulatedVehicleBackend, link_dir: Path | None) -> None:
