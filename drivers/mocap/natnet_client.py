@@ -33,6 +33,7 @@ latest. :meth:`NatNetClient.feed_datagram` runs the receive path in process (fuz
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import math
 import selectors
@@ -159,6 +160,10 @@ class NatNetClient(FrameWaits):
                 self._data = _open_multicast(cfg)
         except OSError as exc:
             self.close()
+            if exc.errno == errno.EADDRNOTAVAIL:  # the usual cause: a wrong local= address
+                raise MocapConnectError(cfg.name, f"local address {cfg.local_ip} is not an "
+                                        "address of this host (the URI's local= option; "
+                                        "`ip -br addr` lists them)") from exc
             raise MocapConnectError(cfg.name, f"cannot open sockets: {exc}") from exc
         try:
             self._handshake()

@@ -40,7 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--session", default="exp1-emulated",
                         help="session whose servo to use (default exp1-emulated)")
     parser.add_argument("--zero-steps", type=int, default=None,
-                        help="zero offset (Present Position at tilt 0) for --uri")
+                        help="zero offset (Present Position at tilt 0), e.g. from `servo home`")
     parser.add_argument("--at-deg", type=float, default=0.0, help="home: the present tilt")
 
 
@@ -94,6 +94,8 @@ def run(args: argparse.Namespace) -> int:
                                                Path(tmp))
                 uris = device_uris(cfg, emulator)
                 uri, zero = uris.servo, uris.servo_zero_steps
+                if args.zero_steps is not None:  # a hardware session carries no zero offset
+                    zero = args.zero_steps
             if args.action == "status":
                 try:
                     reading = read_servo(uri)

@@ -24,7 +24,9 @@ def test_that_probe_of_absent_hardware_prints_one_line_per_device() -> None:
     assert lines[1].endswith("?baud=1000000&id=1: NOT FOUND: no such device: is the adapter "
                              "plugged in and powered? (`ls -l /dev/serial/by-id/` lists the "
                              "USB-serial adapters)")
-    assert all(": NOT FOUND: " in line for line in lines)
+    assert lines[2] == ("mocap        natnet://192.0.2.10?local=192.0.2.20&body=fasthex: NOT "
+                        "FOUND: local address 192.0.2.20 is not an address of this host (the "
+                        "URI's local= option; `ip -br addr` lists them)")
 
 
 def test_that_servo_status_on_an_absent_port_is_one_line_exit_2() -> None:
