@@ -315,14 +315,16 @@ class _Builder:
     def session_error(self, name: str, session_text: str, line: int | None,
                       extra: dict[str, str] | None = None, *, blame: str = "session") -> None:
         """A session (with helper files) whose error is in the file named by ``blame``."""
-        d = self._dir("sessions" if blame == "session" else f"{blame}s")
+        shipped = "/" in blame  # the error is in a shipped mission file
+        d = self._dir("sessions" if blame == "session" else
+                      "missions" if shipped else f"{blame}s")
         path = d / "session.yaml"
         path.write_text(session_text)
         for fname, text in (extra or {}).items():
             (d / fname).write_text(text)
         if blame == "session":
             file = str(path)
-        elif "/" in blame:  # a shipped file
+        elif shipped:
             file, blame = blame, "mission"
         else:
             file = str(d / f"{blame}.yaml")

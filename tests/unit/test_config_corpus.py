@@ -15,6 +15,7 @@ from typing import Any
 
 import pytest
 
+from config import config_root
 from groundstation.cli import main
 
 TOOL = Path(__file__).resolve().parents[2] / "tools" / "config_corpus.py"
@@ -34,7 +35,14 @@ CORPUS = _tool()
 
 @pytest.fixture(scope="module")
 def cases(tmp_path_factory: pytest.TempPathFactory) -> list[Any]:
-    return list(CORPUS.generate(tmp_path_factory.mktemp("corpus")))
+    shipped_before = sorted(config_root().rglob("*.yaml"))
+    out = tmp_path_factory.mktemp("corpus")
+    generated = list(CORPUS.generate(out))
+    # the generator writes only into its folder, never next to the shipped files
+    assert sorted(config_root().rglob("*.yaml")) == shipped_before
+    assert all(Path(c.file).is_relative_to(out) or Path(c.file).is_relative_to(config_root())
+               for c in generated)
+    return generated
 
 
 def test_that_the_corpus_covers_all_four_kinds_and_every_mutation_family(
