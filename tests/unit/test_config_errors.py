@@ -141,3 +141,62 @@ def test_that_the_installed_command_shows_no_traceback(tmp_path: Path) -> None:
     assert "Traceback" not in proc.stderr
     assert proc.stderr.strip().endswith(
         "tilt.max_tilt_deg: exceeds the mechanical limit (35 deg), got 40")
+
+
+@pytest.mark.parametrize(("data", "line", "message"), [
+    (GOOD.replace("mass_kg: 3.1", "mass_kg: 3.1\x00").encode(), 7,
+     "control character U+0000; expected plain text"),
+    (GOOD.encode() + b"# caf\xe9\n", GOOD.count("\n") + 1,
+     "invalid UTF-8 (byte 0xe9); expected a UTF-8 text file"),
+    (GOOD.replace("  arm_length_m", "\tarm_length_m").encode(), 11,
+     "tab in the indentation; YAML indents with spaces"),
+    (("a: " + "[" * 100 + "]" * 100 + "\n").encode(), 1,
+     "nested too deeply; expected at most 16 levels"),
+    (b"a: &a [x, x, x, x]\nb: [*a, *a, *a, *a]\n", 1,
+     "anchors and aliases (&name, *name) are not supported; expected plain values"),
+    ((GOOD + "---\nschema: fasthex.vehicle\n").encode(), GOOD.count("\n") + 1,
+     "a second YAML document ('---'); expected one document per file"),
+    (GOOD.encode() + b"#" * (300 * 1024), 1, "file too large; expected at most 256 KiB of YAML"),
+])
+def test_that_reader_level_garbage_is_located_without_a_key(
+        tmp_path: Path, data: bytes, line: int, message: str) -> None:
+    path = tmp_path / "vehicle.yaml"
+    path.write_bytes(data)
+    with pytest.raises(ConfigError) as info:
+        load_vehicle(path)
+    assert str(info.value) == f"{path}:{line}: {message}"
+
+
+@pytest.mark.parametrize(("value", "message"), [
+    ("2021-13-45", "cannot read this value (month must be in 1..12)"),
+    ("!!int abc", "cannot read this value (invalid literal for int() with base 10: 'abc')"),
+    ('"fast\\0hex"', "expected one line of plain text, got U+0000"),
+])
+def test_that_values_pyyaml_cannot_build_are_located_at_their_key(
+        tmp_path: Path, value: str, message: str) -> None:
+    path = _write(tmp_path, GOOD.replace("name: fasthex", f"name: {value}"))
+    with pytest.raises(ConfigError) as info:
+        load_vehicle(path)
+    assert str(info.value) == f"{path}:{_line_of(GOOD, 'name: fasthex')}: name: {message}"
+
+
+@pytest.mark.parametrize(("edit", "key", "message"), [
+    (("kv_pos: [14.14, 14.14, 14.14]", "kv_pos: [0.5, 14.14, 14.14]"), "controller.kv_pos[0]",
+     "gives a damping ratio of 0.0201; expected 0.2..5 (near 0 the vehicle oscillates)"),
+    (("tikhonov_k1: 4.0e-6", "tikhonov_k1: 0"), "controller.tikhonov_k1",
+     "expected a number > 0 and <= 0.01, got 0"),
+    (("ki_att: [1.0, 1.0, 1.0]", "ki_att: [300.0, 1.0, 1.0]"), "controller.ki_att[0]",
+     "makes the loop unstable: expected < d k / (2 J) = 126, got 300"),
+    (("kp_pos: [50.0, 50.0, 50.0]", "kp_pos: [5000.0, 50.0, 50.0]"), "controller.kp_pos[0]",
+     "gives a natural frequency sqrt(k/m) of 40.2 rad/s; expected 0.5..30 rad/s"),
+    (("thrust_coeff_n_per_hz2: 9.9e-4", "thrust_coeff_n_per_hz2: 9.9e-2"),
+     "rotors.thrust_coeff_n_per_hz2", "means a thrust coefficient C_T = c_f/(rho D^4) = 9.34 "
+     "for a 0.305 m propeller; real propellers have 0.02..0.4"),
+])
+def test_that_physically_absurd_vehicles_are_refused_with_the_reason(
+        tmp_path: Path, edit: tuple[str, str], key: str, message: str) -> None:
+    assert edit[0] in GOOD
+    path = _write(tmp_path, GOOD.replace(*edit))
+    with pytest.raises(ConfigError) as info:
+        load_vehicle(path)
+    assert (info.value.key, info.value.message) == (key, message)
