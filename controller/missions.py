@@ -20,8 +20,8 @@ segment keeps the previous segment's final alpha (or stays ``auto``).
 Validation (before anything flies): positions lie in a sane workspace (:data:`WORKSPACE_M`),
 every takeoff climbs above where it starts, alpha steps and ramps happen inside their segment,
 and no segment asks for more than :data:`MAX_REF_SPEED_M_S` or :data:`MAX_REF_ACCEL_M_S2`. The
-checks that need the vehicle or the session (tilt range, geofence) use
-:func:`segment_extents_w_m` and :func:`explicit_alphas_deg`.
+checks that need the vehicle or the session (tilt range, thrust, geofence) use
+:func:`segment_extents_w_m`, :func:`explicit_alphas_deg` and :func:`peak_vertical_accel_m_s2`.
 """
 
 from __future__ import annotations
@@ -272,6 +272,24 @@ def segment_extents_w_m(spec_: MissionSpec) -> list[tuple[Vec3, Vec3]]:
         lo = (min(p[0] for p in pts), min(p[1] for p in pts), min(p[2] for p in pts))
         hi = (max(p[0] for p in pts), max(p[1] for p in pts), max(p[2] for p in pts))
         out.append((lo, hi))
+    return out
+
+
+def peak_vertical_accel_m_s2(spec_: MissionSpec) -> list[float]:
+    """Per segment, the largest |z''| of its reference (m/s^2): 5.77 dz/T^2 for a minimum-jerk
+    move (as much up as down), A w^2 (1 + fades) for a sine along z, 0 otherwise."""
+    out: list[float] = []
+    for c in Mission(spec_)._segments:
+        seg = c.seg
+        if isinstance(seg, GoToSegment | TakeoffSegment | LandSegment):
+            out.append(5.7735 * abs(c.p1[2] - c.p0[2]) / seg.duration_s**2)
+        elif isinstance(seg, SineSegment) and seg.axis == "z":
+            w = 2.0 * math.pi * seg.frequency_hz
+            # the envelope's own derivatives add to A w^2 while it fades (bounded by 2x here)
+            fading = seg.fade_in_s > 0.0 or seg.fade_out_s > 0.0
+            out.append(seg.amplitude_m * w * w * (2.0 if fading else 1.0))
+        else:
+            out.append(0.0)
     return out
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 from config import find_config
@@ -42,8 +43,21 @@ def check_mission_against_vehicle(mission: MissionSpec, vehicle: VehicleParams, 
     mission's line, never a silent clamp by the planner. (Segments without an alpha inherit
     one; on a fixed-tilt vehicle the planner holds its tilt.)"""
     from config.schema import ConfigError, line_of
-    from controller.missions import explicit_alphas_deg
+    from controller.missions import explicit_alphas_deg, peak_vertical_accel_m_s2
 
+    # vertical accelerations within the rotors' thrust: up, the lift at the smallest tilt less
+    # 10 % kept for attitude control; down, no less than the idle thrust
+    g = vehicle.gravity_m_s2
+    up_max = 0.9 * 6.0 * vehicle.rotors.max_thrust_n * math.cos(vehicle.tilt.min_tilt_rad) \
+        / vehicle.mass_kg - g
+    down_max = g - 6.0 * vehicle.rotors.min_thrust_n / vehicle.mass_kg
+    for i, accel in enumerate(peak_vertical_accel_m_s2(mission)):
+        if accel > min(up_max, down_max):
+            key = f"segments[{i}].duration_s"
+            raise ConfigError(file, line_of(lines, key), key,
+                              f"the reference accelerates vertically at {accel:.3g} m/s^2; "
+                              f"vehicle {vehicle.name!r} manages {up_max:.3g} m/s^2 up and "
+                              f"{down_max:.3g} m/s^2 down (a longer duration_s)")
     tilt = vehicle.tilt
     for key, value_deg in explicit_alphas_deg(mission):
         if not tilt.min_tilt_deg <= value_deg <= tilt.max_tilt_deg:

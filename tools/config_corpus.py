@@ -540,6 +540,18 @@ def _reference_and_cross_cases(b: _Builder) -> None:
     b.simulate_error("missions", "takeoff to 1 m from a 1.5 m start",
                      {"mission.yaml": high_start}, ["mission.yaml"], "mission.yaml",
                      _line(high_start, "height_m"))
+    # a climb the rotors cannot lift: 5.77 * 0.9 m / (0.75 s)^2 = 9.2 m/s^2 > 8.1 on fasthex
+    quick = mission.replace("duration_s: 5.0\n    height_m: 1.0",
+                            "duration_s: 0.75\n    height_m: 1.0", 1)
+    for via in ("simulate", "fly"):
+        if via == "simulate":
+            b.simulate_error("missions", "takeoff faster than the thrust allows",
+                             {"mission.yaml": quick}, ["mission.yaml"], "mission.yaml",
+                             _line(quick, "duration_s: 0.75"))
+        else:
+            b.session_error("takeoff faster than the thrust allows (session)",
+                            sess(mission="mission.yaml"), _line(quick, "duration_s: 0.75"),
+                            {"mission.yaml": quick}, blame="mission")
     # motions no vehicle can follow
     for seg, field in (("  - kind: goto\n    duration_s: 0.5\n    pos_w_m: [2.0, 0.0, 1.0]\n",
                         "pos_w_m"),

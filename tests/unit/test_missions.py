@@ -194,3 +194,25 @@ def test_that_the_extents_cover_each_segment_and_the_alphas_are_listed() -> None
     assert extents[2][1] == pytest.approx((1.0, 0.0, 1.5), abs=1e-9)
     assert alphas == [("segments[0].alpha.value_deg", 5.0), ("segments[1].alpha.from_deg", 0.0),
                       ("segments[1].alpha.to_deg", 20.0)]
+
+
+def test_that_a_climb_beyond_the_vehicles_thrust_is_refused() -> None:
+    # Fixture: 0.9 m in 0.75 s peaks at 5.77 * 0.9 / 0.75^2 = 9.2 m/s^2 (under the mission's
+    # own 1 g cap); fasthex lifts 0.9 * 61.8 N / 3.1 kg - g = 8.1 m/s^2 at most
+    from groundstation.configs import check_mission_against_vehicle, load_vehicle
+
+    text = (f"schema: {MISSION_SCHEMA}\nversion: 1\nname: t\nstart_pos_w_m: [0.0, 0.0, 0.1]\n"
+            "segments:\n  - {kind: takeoff, duration_s: 0.75, height_m: 1.0}\n")
+    lines: dict[str, int] = {}
+    spec_ = load_config_text(text, MissionSpec, schema=MISSION_SCHEMA, lines=lines)
+    # Test
+    with pytest.raises(ConfigError) as err:
+        check_mission_against_vehicle(spec_, load_vehicle("fasthex"), "m.yaml", lines)
+    # Assert
+    assert str(err.value) == (
+        "m.yaml:6: segments[0].duration_s: the reference accelerates vertically at 9.24 m/s^2; "
+        "vehicle 'fasthex' manages 8.13 m/s^2 up and 9.32 m/s^2 down (a longer duration_s)")
+    # the same climb in 1 s (5.2 m/s^2) is within reach
+    slow = load_config_text(text.replace("duration_s: 0.75", "duration_s: 1.0"), MissionSpec,
+                            schema=MISSION_SCHEMA)
+    check_mission_against_vehicle(slow, load_vehicle("fasthex"), "m.yaml", lines)
