@@ -85,6 +85,10 @@ def simulate(args: argparse.Namespace) -> dict[str, Any]:
         raise UserError(f"--duration must be positive, got {args.duration}")
     limits = _crash_limits(args)
     tilt = None if args.tilt_deg is None else math.radians(args.tilt_deg)
+    lo_deg, hi_deg = params.tilt.min_tilt_deg, params.tilt.max_tilt_deg
+    if args.tilt_deg is not None and not lo_deg <= args.tilt_deg <= hi_deg:
+        raise UserError(f"--tilt-deg {args.tilt_deg:g}: outside the tilt range of vehicle "
+                        f"{params.name!r} ({lo_deg:g} .. {hi_deg:g} deg)")
     source: StateSource | None = None
     preroll_s = 0.0
     if args.estimator == "ukf":

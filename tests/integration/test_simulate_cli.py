@@ -171,3 +171,13 @@ def test_that_a_non_finite_state_or_estimate_is_a_crash() -> None:
     assert crash is not None and crash.kind == "non-finite" and "estimate" in crash.reason
     crash = check_crash(1.0, limits, ok, ok, 1.01)
     assert crash is not None and crash.kind == "impact"
+
+
+@pytest.mark.parametrize("tilt", ["36", "-1", "nan"])
+def test_that_a_tilt_outside_the_vehicle_range_is_an_error_not_a_clamp(
+        tilt: str, capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["simulate", "exp1-hover-tilt-steps", "--tilt-deg", tilt, "--duration", "1"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert err == [f"fasthex: --tilt-deg {float(tilt):g}: outside the tilt range of vehicle "
+                   "'fasthex' (0 .. 35 deg)"]
