@@ -182,6 +182,17 @@ def load_session(name_or_path: str | Path) -> SessionConfig:
         _check_emulated_mocap(preset, session, str(preset_path), path, lines)
         if Path(backend.disturbances).suffix in (".yaml", ".yml"):
             session = replace(session, backend=replace(backend, disturbances=str(preset_path)))
+    key_file = session.telemetry.mavlink_key_file
+    if key_file:  # relative to the session file, like its other references; it must exist
+        key_path = Path(key_file).expanduser()
+        if not key_path.is_absolute():
+            key_path = path.parent / key_path
+        if not key_path.is_file():
+            raise ConfigError(str(path), line_of(lines, "telemetry.mavlink_key_file"),
+                              "telemetry.mavlink_key_file",
+                              f"no such key file {key_file!r} (relative to the session file)")
+        session = replace(session, telemetry=replace(session.telemetry,
+                                                     mavlink_key_file=str(key_path)))
     return session
 
 

@@ -178,3 +178,19 @@ def test_that_an_imu_timeout_below_two_periods_is_refused(tmp_path: Path) -> Non
         load_session(path)
     assert str(info.value) == (f"{path}:{_line_of(text, 'imu_timeout_s')}: safety.imu_timeout_s: "
                                "expected >= two IMU periods at 500 Hz (0.004 s), got 0.003")
+
+
+def test_that_a_mavlink_key_file_is_relative_to_the_session_and_must_exist(
+        tmp_path: Path) -> None:
+    # Fixture: a session that names its key file next to itself
+    text = GOOD.replace("telemetry:\n", "telemetry:\n  mavlink_key_file: gcs.key\n")
+    path = tmp_path / "session.yaml"
+    path.write_text(text)
+    # Test / Assert: missing -> the session's line; present -> resolved next to the session
+    with pytest.raises(ConfigError) as info:
+        load_session(path)
+    line = _line_of(text, "mavlink_key_file")
+    assert str(info.value) == (f"{path}:{line}: telemetry.mavlink_key_file: no such key file "
+                               "'gcs.key' (relative to the session file)")
+    (tmp_path / "gcs.key").write_text("a" * 64)
+    assert load_session(path).telemetry.mavlink_key_file == str(tmp_path / "gcs.key")
