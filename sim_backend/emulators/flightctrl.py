@@ -260,10 +260,23 @@ class EmulatedFlightCtrl:
         return self
 
     def stop(self) -> None:
-        """Stop the thread and close the pty (idempotent)."""
+        """Stop the thread and close the pty (idempotent). A board still streaming or with a
+        motor on at that point is reported (a warning): its client did not leave it as found
+        (bytes the client sent before it let go are handled first)."""
         self._stop.set()
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=5.0)
+        if not self._closed and (self._thread is None or not self._thread.is_alive()):
+            with contextlib.suppress(OSError):
+                while self._pty.wait_readable(0.0):
+                    data = self._pty.read(4096)
+                    if not data:
+                        break
+                    self._handle_input(data)
+            if self.streams_on or self.motors_on:
+                on = sorted(self._periods_ns) + (["motors"] if self.motors_on else [])
+                log.warning("emulated Flight-Ctrl: closed with %s on: the client did not "
+                            "leave the board as found", ", ".join(on))
         self._pty.close()
         self._closed = True
 

@@ -2,9 +2,11 @@
 failsafe end, Ctrl-C end) and `fasthex servo` the Flight-Ctrl's streams are off and its motors
 stopped, asserted from the emulated board's side.
 
-The emulated vehicle runs in this test process (real ptys, a real NatNet server on UDP loopback,
-the realtime clock: a board that free-runs like a real one), and the commands run as separate
-`fasthex` processes against a hardware session that names its devices, as on a bench.
+For probe and servo the emulated vehicle runs in this test process (real ptys, a real NatNet
+server on UDP loopback, the realtime clock: a board that free-runs like a real one) and the
+commands run against a hardware session that names its devices, as on a bench; the board's
+state is read from the emulator. The flights are lockstep flights of an emulated session
+(deterministic, whatever the load), whose board reports at shutdown what was left on.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from flight_support import SHORT_MISSION
+from flight_support import SESSION, SHORT_MISSION
 
 from config import find_config
 from config.schema import load_config
@@ -135,62 +137,84 @@ def _rows(path: Path) -> int:
         return 0
 
 
-def _fly(bench: Bench, record: Path) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "groundstation", "fly", str(bench.session),
-                             "--record", str(record), "--quiet", "--rerun", "off",
-                             "--no-realtime-settings"],
+# ----------------------------------------------------------------- fly: every end path
+# Lockstep flights of the emulated session: the emulated board runs in `fly`'s child process,
+# whose stderr is `fly`'s. When the board is shut down it reports any stream or motor still on
+# (LEFT_ON); the SIGKILL test shows that report appears when a client does leave it on.
+
+LEFT_ON = "the client did not leave the board as found"
+
+
+def _fly_lockstep(tmp_path: Path, name: str, faults: str = "",
+                  mission: str = SHORT_MISSION) -> tuple[subprocess.Popen[str], Path]:
+    (tmp_path / "short-hover.yaml").write_text(mission)
+    session = tmp_path / f"{name}.yaml"
+    session.write_text(SESSION.format(seed=2, faults=faults, corrupt=0.0, zmax=2.5,
+                                      servo_action="hold"))
+    record = tmp_path / f"{name}.fhr"
+    proc = subprocess.Popen([sys.executable, "-m", "groundstation", "fly", str(session),
+                             "--record", str(record), "--quiet", "--rerun", "off"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return proc, record
 
 
-def _wait_rows(record: Path, n: int, proc: subprocess.Popen[str], timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while _rows(record) < n and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)  # polling the record the flight process writes, bounded
+def _airborne(proc: subprocess.Popen[str], record: Path) -> None:
+    deadline = time.monotonic() + 180.0
+    while _rows(record) < 3000 and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)  # polling the record another process writes, bounded
+    assert _rows(record) >= 3000, proc.communicate()
 
 
 def _events(record: Path) -> str:
     return Path(str(record) + ".events.txt").read_text()
 
 
-def test_that_a_normal_flight_end_leaves_the_board_quiet(bench: Bench, tmp_path: Path) -> None:
+def test_that_a_normal_end_leaves_the_board_with_streams_off(tmp_path: Path) -> None:
     # Test
-    record = tmp_path / "normal.fhr"
-    proc = _fly(bench, record)
-    out, err = proc.communicate(timeout=180)
+    proc, record = _fly_lockstep(tmp_path, "normal")
+    out, err = proc.communicate(timeout=300)
+    # Assert
+    assert proc.returncode == 0, out + err
+    assert "LANDING -> DISARMED: touchdown" in _events(record)
+    assert LEFT_ON not in err
+
+
+def test_that_a_failsafe_end_leaves_the_board_with_streams_off(tmp_path: Path) -> None:
+    # Test: MoCap markers occluded for 3 s in the hover, three times the MoCap timeout
+    proc, record = _fly_lockstep(tmp_path, "failsafe", faults="mocap-dropout@5.0:3.0")
+    _, err = proc.communicate(timeout=300)
     # Assert
     events = _events(record)
-    assert "LANDING -> DISARMED: touchdown" in events, out + err
-    assert bench.board_quiet
+    assert "-> LANDING: failsafe: MoCap lost" in events, events
+    assert "-> DISARMED" in events or "-> CUT" in events
+    assert LEFT_ON not in err, err
 
 
-def test_that_a_failsafe_end_leaves_the_board_quiet(bench: Bench, tmp_path: Path) -> None:
+def test_that_a_ctrl_c_end_leaves_the_board_with_streams_off(tmp_path: Path) -> None:
     # Fixture
-    record = tmp_path / "failsafe.fhr"
-    proc = _fly(bench, record)
-    _wait_rows(record, 2500, proc, 120.0)  # 5 s of ticks: in the air
-    assert proc.poll() is None, proc.communicate()
-    # Test: the MoCap markers occluded for 5 s, ten times the session's MoCap timeout
-    bench.backend.mocap.occlude(5 * 100)
-    proc.communicate(timeout=180)
-    # Assert
-    events = _events(record)
-    assert "MoCap" in events and ("-> LANDING" in events or "-> CUT" in events), events
-    assert bench.board_quiet
-
-
-def test_that_a_ctrl_c_end_leaves_the_board_quiet(bench: Bench, tmp_path: Path) -> None:
-    # Fixture
-    record = tmp_path / "ctrl-c.fhr"
-    proc = _fly(bench, record)
-    _wait_rows(record, 2500, proc, 120.0)
-    assert proc.poll() is None, proc.communicate()
-    # Test: Ctrl-C as a terminal sends it (the whole foreground process group is this one's
-    # child alone here: it is not in our group's foreground, so signal the process)
+    proc, record = _fly_lockstep(tmp_path, "ctrl-c", mission=SHORT_MISSION.replace(
+        "duration_s: 4.0", "duration_s: 60.0"))
+    _airborne(proc, record)
+    # Test
     proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=180)
+    out, err = proc.communicate(timeout=300)
     # Assert
     assert "operator" in _events(record), out + err
-    assert bench.board_quiet
+    assert LEFT_ON not in err, err
+
+
+def test_that_a_killed_ground_station_is_seen_to_leave_the_streams_on(tmp_path: Path) -> None:
+    # Fixture: the control for the three tests above: a client that cannot clean up
+    proc, record = _fly_lockstep(tmp_path, "killed", mission=SHORT_MISSION.replace(
+        "duration_s: 4.0", "duration_s: 60.0"))
+    _airborne(proc, record)
+    # Test: SIGKILL; the orphaned emulator waits for its watchdog, then shuts its board down
+    proc.kill()
+    _, err = proc.communicate(timeout=300)  # EOF once the emulator (same stderr) has exited
+    # Assert: the watchdog stopped the motors; battery, IMU and motor streams were still on
+    # (the magnetometer stream is off in the driver's configuration)
+    assert "motors stopped" in err
+    assert f"closed with B, I, M on: {LEFT_ON}" in err, err
 
 
 def test_that_close_sends_the_stop_and_stream_off_sequence(bench: Bench) -> None:
