@@ -66,10 +66,21 @@ IMU_MIN_RATE_FRACTION = 0.8
 #: LINK_CHECK_TICKS ticks: a degraded link is cut within one window and one check of its onset,
 #: and a single gap shorter than imu_timeout_s leaves the rate above the limit
 IMU_RATE_WINDOW_SAMPLES = 250
+#: lockstep: a sequence jump counts as at most this many samples in the rate: the driver takes
+#: a longer jump as a resynchronisation of its counter (e.g. after a corrupted sequence byte,
+#: the loop's clock jumps with it), not as that many samples lost; a long run of lost samples
+#: is the IMU timeout's to judge
+IMU_RATE_MAX_COUNTED_GAP = 17
+#: lockstep: wall time a servo cycle may take before the servo counts as not answering
+LOCKSTEP_SERVO_WAIT_S = 1.5
 #: landing: O_B within 4 cm of its resting height this long -> touchdown confirmed, disarm
 TOUCHDOWN_CONFIRM_S = 0.4
-#: lockstep: wall time after which a sample counts as lost, and the slice to check the link
-LOCKSTEP_LOST_S = 0.1
+#: lockstep: wall time after which a sample counts as lost, and the slice to check the link.
+#: A sample lost on the wire shows at once as a receive error; this only catches a silent
+#: board, so it is long: on a loaded host a reply can take 100 ms of wall time, and counting
+#: it lost would step the emulated board twice and break the run's determinism. It stays
+#: below the emulated board's 2 s lockstep grace (after which it free-runs).
+LOCKSTEP_LOST_S = 1.0
 LOCKSTEP_SLICE_S = 0.003
 #: realtime: longest single wait for an IMU sample; a gap is bridged by resending the last
 #: command at least this often until it exceeds the session's imu_timeout_s
@@ -181,7 +192,8 @@ class FlightLoop:
         servo_health = ServoHealth.OK
         # IMU rate on the board's own clock: samples received per sequence numbers elapsed
         # over the last LINK_CHECK_TICKS ticks (in lockstep the wall-clock rate means nothing)
-        rate_marks: collections.deque[tuple[int, int]] = collections.deque()  # (seq, n)
+        rate_marks: collections.deque[tuple[int, int]] = collections.deque()  # (expected, n)
+        expected = 0  # IMU samples due so far, each jump counted up to IMU_RATE_MAX_COUNTED_GAP
         prev_seq: int | None = None
         extremes = _Extremes()
         missing = 0  # consecutive IMU samples not received (lockstep) or empty waits
@@ -247,6 +259,8 @@ class FlightLoop:
                 last_arrival_ns = imu.arrival_t_ns
             t_ns = imu.seq * self.period_ns if opts.lockstep else imu.t_ns
             gap_s = 0.0 if prev_seq is None else (imu.seq - prev_seq) * self.period_ns * 1e-9
+            expected += 1 if prev_seq is None else min(max(imu.seq - prev_seq, 1),
+                                                      IMU_RATE_MAX_COUNTED_GAP)
             prev_seq = imu.seq
             self.now_ns = t_ns
             if t0_s is None:  # lockstep: the board's own clock, sample k at k periods
@@ -308,12 +322,14 @@ class FlightLoop:
                 stats = self.imu.link_stats()
                 # the newest mark at least a window old is the window's start
                 while len(rate_marks) > 1 and \
-                        imu.seq - rate_marks[1][0] >= IMU_RATE_WINDOW_SAMPLES:
+                        expected - rate_marks[1][0] >= IMU_RATE_WINDOW_SAMPLES:
                     rate_marks.popleft()
-                if rate_marks and imu.seq > rate_marks[0][0]:
-                    seq0, n0 = rate_marks[0]
-                    self.imu_rate_fraction = (n - n0) / (imu.seq - seq0)
-                rate_marks.append((imu.seq, n))
+                if rate_marks and expected > rate_marks[0][0]:
+                    e0, n0 = rate_marks[0]
+                    self.imu_rate_fraction = (n - n0) / (expected - e0)
+                if n:  # from the second check on: the first sample may follow a free run of
+                    # the emulated board (a ground station slow to start), not a lost stretch
+                    rate_marks.append((expected, n))
                 # in lockstep the loop itself sets the pace: judge the rate on sequence gaps
                 link_ok = stats.health is not LinkHealth.LOST and (
                     self.imu_rate_fraction >= IMU_MIN_RATE_FRACTION if opts.lockstep
@@ -371,7 +387,11 @@ class FlightLoop:
                                           force_ext_w_n=force_ext)
             if servo_cycle:  # before set_tilt: the cycle wrote the previous goal
                 try:
-                    servo_state = self.tilt.finish_cycle(0.3)
+                    # a wall-clock wait, as the simulated time stands still: a healthy servo
+                    # gets LOCKSTEP_SERVO_WAIT_S (a loaded host must not fake a fault), one
+                    # already faulted the short wait of its 2 Hz retries
+                    servo_state = self.tilt.finish_cycle(
+                        0.3 if servo_health is ServoHealth.FAULT else LOCKSTEP_SERVO_WAIT_S)
                 except Exception as exc:
                     servo_state = self._servo_sync_failed(exc)
             if tick is not None and directive.motors_on:

@@ -293,3 +293,28 @@ def test_that_operator_land_in_a_landing_is_refused_and_stop_then_cuts() -> None
     assert sm.request(20.3, "stop") == (True, "motors cut")
     assert sm.transitions[-1].reason == "operator: second stop request"
     assert sm.request(20.4, "stop") == (False, "already CUT")
+
+
+def test_that_the_states_are_numbered_as_the_mavlink_custom_mode() -> None:
+    # the loop publishes int(state); the MAVLink side reads it back as a FlightPhase
+    from groundstation.operator import FlightPhase
+
+    assert [(s.name, int(s)) for s in FlightState] == [(p.name, int(p)) for p in FlightPhase]
+    assert [int(s) for s in FlightState] == list(range(7))
+
+
+def test_that_the_default_spin_up_is_one_second() -> None:
+    limits = SafetyLimits(
+        geofence_min_m=(-2.0, -2.0, -0.2), geofence_max_m=(2.0, 2.0, 2.5),
+        max_body_tilt_deg=40.0, mocap_timeout_s=1.0, imu_timeout_s=0.05, min_battery_v=14.0,
+        failsafe_action="land", servo_fault_action="hold")
+    sm = FlightStateMachine(limits)
+    sm.request(0.0, "arm")
+    assert sm.update(0.998, replace(OK, mission_phase="takeoff")).state is FlightState.ARMED
+    assert sm.update(1.0, replace(OK, mission_phase="takeoff")).state is FlightState.TAKEOFF
+
+
+def test_that_a_low_rate_at_the_imu_timeout_is_reported_as_the_rate() -> None:
+    sm = _flying()
+    sm.update(10.0, replace(OK, imu_age_s=0.05, imu_rate_ok=False))
+    assert sm.faults == ["10.000 s: IMU rate below 80 % of the set rate"]
