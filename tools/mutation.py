@@ -28,12 +28,14 @@ import argparse
 import ast
 import copy
 import os
+import queue
 import shutil
 import subprocess
 import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -54,11 +56,13 @@ class Target:
     tests: tuple[str, ...]
     #: only statements whose source mentions one of these names (empty: every statement)
     mentions: tuple[str, ...] = ()
+    #: the tests need no fixture of tests/conftest.py (pytest starts 2-3x faster without it)
+    noconftest: bool = False
 
 
 TARGETS = (
     Target("flight", "groundstation/flight.py", (),
-           ("tests/unit/test_flight_state_machine.py",)),
+           ("tests/unit/test_flight_state_machine.py",), noconftest=True),
     Target("preflight", "groundstation/loop.py",
            ("FlightLoop._preflight", "FlightLoop._health", "_servo_health"),
            ("tests/integration/test_failsafes.py::"
@@ -75,13 +79,16 @@ TARGETS = (
            ("RecordWriter.append", "RecordWriter.append_block", "RecordWriter.flush",
             "RecordWriter._write_block", "RecordWriter.close", "parse_record"),
            ("tests/unit/test_simulator_record.py", "tests/unit/test_report.py",
-            "tests/integration/test_fly_kill.py")),
+            "tests/unit/test_safety_boundaries.py", "tests/integration/test_fly_kill.py")),
     Target("telemetry", "groundstation/session.py", ("_telemetry_main",),
            ("tests/integration/test_fly_kill.py",)),
     Target("signing", "drivers/mavlink/signing.py", (),
-           ("tests/unit/test_mavlink_signing.py",)),
+           ("tests/unit/test_mavlink_signing.py", "tests/unit/test_safety_boundaries.py"),
+           noconftest=True),
     Target("operator", "groundstation/operator.py", ("decide",),
-           ("tests/unit/test_mavlink_operator.py", "tests/unit/test_mavlink_gcs.py")),
+           ("tests/unit/test_mavlink_operator.py", "tests/unit/test_mavlink_gcs.py",
+            "tests/unit/test_safety_boundaries.py"),
+           noconftest=True),
 )
 
 
@@ -273,10 +280,12 @@ def make_copy(root: Path = ROOT) -> Path:
     return work
 
 
-def run_tests(work: Path, tests: tuple[str, ...], timeout_s: float) -> tuple[str, float]:
+def run_tests(work: Path, tests: tuple[str, ...], timeout_s: float,
+              noconftest: bool = False) -> tuple[str, float]:
     env = dict(os.environ, PYTHONPATH=str(work), PYTHONDONTWRITEBYTECODE="1")
     cmd = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider",
-           "--no-header", "-o", "addopts=--import-mode=importlib", *tests]
+           "--no-header", "-o", "addopts=--import-mode=importlib",
+           *(["--noconftest"] if noconftest else []), *tests]
     t0 = time.monotonic()
     try:
         proc = subprocess.run(cmd, cwd=work, env=env, capture_output=True, text=True,
@@ -302,9 +311,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timeout", type=float, default=300.0, help="per mutant, seconds")
     ap.add_argument("--tests", nargs="*", default=None,
                     help="override the target's tests (pytest node ids)")
+    ap.add_argument("--jobs", type=int, default=1, help="mutants run side by side (each in "
+                    "a copy of its own)")
     args = ap.parse_args(argv)
     targets = [t for t in TARGETS if t.name in args.targets]
-    work = None if args.list else make_copy()
+    if args.list:
+        for target in targets:
+            mutants = mutants_of(target)
+            print(f"== {target.name}: {target.path} ({len(mutants)} mutants)")
+            for m in mutants:
+                print(f"  {m.target.path}:{m.line}: {m.description}")
+        return 0
+    works = [make_copy() for _ in range(max(1, args.jobs))]
     totals = {"killed": 0, "survived": 0, "timeout": 0}
     survivors: list[Mutant] = []
     try:
@@ -313,33 +331,39 @@ def main(argv: list[str] | None = None) -> int:
             if args.max_mutants:
                 mutants = mutants[:args.max_mutants]
             print(f"== {target.name}: {target.path} ({len(mutants)} mutants)", flush=True)
-            if work is None:
-                for m in mutants:
-                    print(f"  {m.target.path}:{m.line}: {m.description}")
-                continue
             tests = tuple(args.tests) if args.tests else target.tests
-            verdict, dt = run_tests(work, tests, args.timeout)
+            verdict, dt = run_tests(works[0], tests, args.timeout, target.noconftest)
             if verdict != "survived":
                 raise SystemExit(f"mutation: the unmutated tests of {target.name} do not pass "
                                  f"({verdict}); fix them first")
             print(f"  baseline passes in {dt:.1f} s", flush=True)
-            original = (work / target.path).read_text()
-            try:
-                for m in mutants:
+            original = (works[0] / target.path).read_text()
+            free: queue.Queue[Path] = queue.Queue()
+            for w in works:
+                free.put(w)
+
+            def one(m: Mutant, tests: tuple[str, ...] = tests, target: Target = target,
+                    free: queue.Queue[Path] = free, original: str = original
+                    ) -> tuple[Mutant, str, float]:
+                work = free.get()
+                try:
                     (work / target.path).write_text(m.source)
-                    verdict, dt = run_tests(work, tests, args.timeout)
+                    verdict, dt = run_tests(work, tests, args.timeout, target.noconftest)
+                finally:
+                    (work / target.path).write_text(original)
+                    free.put(work)
+                return m, verdict, dt
+
+            with ThreadPoolExecutor(max_workers=len(works)) as pool:
+                for m, verdict, dt in pool.map(one, mutants):
                     totals[verdict] += 1
                     if verdict == "survived":
                         survivors.append(m)
                     print(f"  {verdict:8s} {dt:6.1f} s  {m.target.path}:{m.line}: "
                           f"{m.description}", flush=True)
-            finally:
-                (work / target.path).write_text(original)
     finally:
-        if work is not None:
-            shutil.rmtree(work, ignore_errors=True)
-    if work is None:
-        return 0
+        for w in works:
+            shutil.rmtree(w, ignore_errors=True)
     n = sum(totals.values())
     score = 100.0 * totals["killed"] / n if n else 0.0
     print(f"\nkilled {totals['killed']}, survived {totals['survived']}, timeout "
