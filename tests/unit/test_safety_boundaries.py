@@ -149,3 +149,10 @@ def test_that_a_cut_or_foreign_header_is_refused_with_its_reason(tmp_path: Path)
         parse_record(MAGIC + struct.pack("<I", 0))  # the magic and a length, nothing else
     with pytest.raises(RecordFormatError, match="bad magic"):
         parse_record(MAGIC[:7])
+
+
+def test_that_the_signing_constants_are_mavlinks() -> None:
+    from datetime import UTC, datetime
+
+    assert datetime(2015, 1, 1, tzinfo=UTC).timestamp() == SIGNING_EPOCH_UNIX_S
+    assert NEW_STREAM_WINDOW == 60 * 100_000  # one minute in 10 us units
