@@ -156,3 +156,19 @@ def test_that_the_signing_constants_are_mavlinks() -> None:
 
     assert datetime(2015, 1, 1, tzinfo=UTC).timestamp() == SIGNING_EPOCH_UNIX_S
     assert NEW_STREAM_WINDOW == 60 * 100_000  # one minute in 10 us units
+
+
+def test_that_a_foreign_format_is_named_and_a_one_byte_row_type_reads() -> None:
+    import json
+
+    from groundstation.record import FORMAT, MAGIC, VERSION, RecordFormatError, parse_record
+
+    def record(header: dict[str, object], body: bytes = b"") -> bytes:
+        text = json.dumps(header).encode()
+        return MAGIC + struct.pack("<I", len(text)) + text + body
+
+    with pytest.raises(RecordFormatError, match="unsupported record format"):
+        parse_record(record({"format": "other", "version": VERSION, "dtype": [["a", "u1"]]}))
+    rec = parse_record(record({"format": FORMAT, "version": VERSION, "dtype": [["a", "u1"]]},
+                              b"\x07\x08"))
+    assert rec.rows["a"].tolist() == [7, 8]
