@@ -311,6 +311,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timeout", type=float, default=300.0, help="per mutant, seconds")
     ap.add_argument("--tests", nargs="*", default=None,
                     help="override the target's tests (pytest node ids)")
+    ap.add_argument("--rev", default=None, help="mutate the targets as committed in this git "
+                    "revision (e.g. HEAD), not as they are in the working tree")
     ap.add_argument("--jobs", type=int, default=1, help="mutants run side by side (each in "
                     "a copy of its own)")
     args = ap.parse_args(argv)
@@ -323,11 +325,17 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"  {m.target.path}:{m.line}: {m.description}")
         return 0
     works = [make_copy() for _ in range(max(1, args.jobs))]
+    if args.rev:  # the committed sources of the targets (others' edits in progress left out)
+        for target in targets:
+            text = subprocess.run(["git", "show", f"{args.rev}:{target.path}"], cwd=ROOT,
+                                  capture_output=True, text=True, check=True).stdout
+            for w in works:
+                (w / target.path).write_text(text)
     totals = {"killed": 0, "survived": 0, "timeout": 0}
     survivors: list[Mutant] = []
     try:
         for target in targets:
-            mutants = mutants_of(target)
+            mutants = mutants_of(target, works[0])
             if args.max_mutants:
                 mutants = mutants[:args.max_mutants]
             print(f"== {target.name}: {target.path} ({len(mutants)} mutants)", flush=True)
