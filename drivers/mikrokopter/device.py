@@ -15,9 +15,12 @@ A reader thread owns the receive side. It timestamps every chunk on the injected
 decodes, checks lengths, ranges and IMU sequence numbers, and puts the results into single-slot
 mailboxes: the newest IMU sample (handed to :meth:`FlightCtrl.wait_next`, never queued), the
 newest state of each motor, battery and magnetometer. IMU sample times are rebuilt from the
-sequence number and the configured period (passive synchronisation: the offset follows the
-earliest arrival, and resets after a jump of more than 16 samples). Link statistics (measured
-rates, gaps, staleness, every kind of dropped frame) come from :meth:`FlightCtrl.link_stats`.
+sequence number on the board's own clock, mapped onto the host clock by
+:class:`drivers.clock_sync.ClockSync` (the board's real rate and offset, learnt on the earliest
+arrivals: a board whose crystal is off by 1.2 % still gets sample times that are never later
+than their arrival); ``link_stats().imu_clock`` has the measured rate, offset and drift. Link
+statistics (measured rates, gaps, staleness, every kind of dropped frame) come from
+:meth:`FlightCtrl.link_stats`.
 A loop that owns the link alone (a lockstep flight, where every sample answers the loop's own
 ``w``) can take the receive side over (:meth:`FlightCtrl.read_in_caller_thread`): the same
 processing then runs inside its waits, which saves a thread hand-over per sample.
@@ -42,6 +45,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 from config.schema import ConfigValueError
+from drivers.clock_sync import ClockSync
 from drivers.errors import DeviceLostError, DriverError, TransportError
 from drivers.mikrokopter import framing_stock, framing_tk3
 from drivers.mikrokopter import messages as mkm
@@ -54,6 +58,7 @@ __all__ = [
     "FlightCtrlConfig",
     "FlightCtrlError",
     "FlightCtrlIdentityError",
+    "ImuClock",
     "ImuSample",
     "LinkHealth",
     "LinkStats",
@@ -218,6 +223,19 @@ class StreamStats:
 
 
 @dataclass(frozen=True, slots=True)
+class ImuClock:
+    """The board's sample clock as measured against the host clock."""
+
+    rate_hz: float
+    """IMU samples per host second (the set rate corrected by the drift); NaN before any."""
+    offset_s: float
+    """Host time minus board time (sample counter x set period) at the newest sample."""
+    drift_ppm: float
+    """Rate error of the board's clock (negative: slow); 0 until learnt (``known``)."""
+    known: bool = False
+
+
+@dataclass(frozen=True, slots=True)
 class LinkStats:
     health: LinkHealth
     imu: StreamStats
@@ -243,6 +261,7 @@ class LinkStats:
     frames_sent: int
     texts: tuple[str, ...]
     """The last info/warning/error texts from the board (``N: ...``)."""
+    imu_clock: ImuClock = ImuClock(math.nan, math.nan, 0.0)
 
     @property
     def dropped(self) -> int:
@@ -355,7 +374,7 @@ class _ImuTimeBase:
         self.period_ns = period_ns
         self.count: int | None = None  # unwrapped counter of the last accepted sample
         self.last_arrival_ns = 0
-        self.offset_ns = 0
+        self.sync = ClockSync()  # board time (count x period) -> host time
         self.suspect: int | None = None
         self.missing = 0
         self.rejected = 0
@@ -384,21 +403,21 @@ class _ImuTimeBase:
         self.suspect = None
         self.count = count
         self.last_arrival_ns = arrival_ns
-        base = count * self.period_ns
-        # The offset follows the earliest arrival (least latency), drifting up by at most
-        # 100 ppm per sample, and never lags the arrival by more than 16 periods.
-        candidate = arrival_ns - base
-        self.offset_ns = min(self.offset_ns + self.period_ns // 10_000, candidate)
-        if candidate - self.offset_ns > _SEQ_JUMP_RESET * self.period_ns:
-            self.offset_ns = candidate
-        return count, base + self.offset_ns
+        return count, self.sync.update(count * self.period_ns, arrival_ns)
 
     def _reset(self, count: int, seq8: int, arrival_ns: int) -> tuple[int, int]:
         self.count = count
         self.suspect = None
         self.last_arrival_ns = arrival_ns
-        self.offset_ns = arrival_ns - count * self.period_ns
-        return count, arrival_ns
+        # a counter that does not continue the old one is a step the clock sync re-learns
+        return count, self.sync.update(count * self.period_ns, arrival_ns)
+
+    def clock(self) -> ImuClock:
+        sync = self.sync
+        if not sync.samples:
+            return ImuClock(math.nan, math.nan, 0.0)
+        return ImuClock(1e9 / (self.period_ns * sync.rate_ratio), sync.offset_ns * 1e-9,
+                        sync.drift_ppm, sync.rate_known)
 
 
 # ------------------------------------------------------------------------------------ device
@@ -689,7 +708,7 @@ class FlightCtrl:
                 malformed=self._malformed, implausible=self._implausible,
                 seq_rejected=self._timebase.rejected, resyncs=self._timebase.resyncs,
                 imu_overwritten=self._imu_overwritten, frames_sent=self._frames_sent,
-                texts=tuple(self._texts))
+                texts=tuple(self._texts), imu_clock=self._timebase.clock())
 
     # ---------------------------------------------------------------- lifetime
 

@@ -20,8 +20,12 @@ Only datagrams whose source address is ``server_ip`` are accepted (others are co
 foreign); datagrams that do not decode are counted as malformed and dropped. When a frame says
 the models changed, MODELDEF is requested again.
 
-Timestamps: a sample's ``t_ns`` is the arrival time on the injected clock minus
-(transmit - mid-exposure) / HighResClockFrequency minus the configured network delay.
+Timestamps: the server's transmit stamps (HighResClockFrequency ticks) are mapped onto the
+injected clock by :class:`drivers.clock_sync.ClockSync` (offset and rate error of the server's
+clock, on the earliest arrivals); a sample's ``t_ns`` is its mapped mid-exposure stamp minus the
+configured network delay (the smallest delay, which one-way stamps cannot see), never later
+than its arrival; ``latency_s`` is arrival minus ``t_ns``. Without stamps (a zero clock
+frequency) ``t_ns`` is the arrival minus the configured network delay.
 
 Plausibility (:class:`~drivers.mocap.pose.PoseLimits`, ``limits``): a frame whose reported
 latency is outside 0..1 s is dropped whole; a tracked pose that is non-finite, farther than
@@ -45,6 +49,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from config.schema import ConfigValueError
+from drivers.clock_sync import ClockSync
 from drivers.mocap import natnet
 from drivers.mocap.frames import FrameConfig, FrameTransform
 from drivers.mocap.pose import (
@@ -133,6 +138,7 @@ class NatNetClient(FrameWaits):
         self._latest: PoseSample | None = None
         self._last_frame_times: tuple[int, int, float] = (0, 0, math.nan)
         self._last_frame: natnet.FrameOfData | None = None
+        self.server_clock = ClockSync()  # the server's high-resolution clock -> ours
         self._response: natnet.Response | natnet.UnrecognizedRequest | None = None
         self._frames_seen = 0
         self._next_keepalive = 0.0
@@ -389,8 +395,17 @@ class NatNetClient(FrameWaits):
             # so would be the capture time of every pose in it.
             self.monitor.count_implausible()
             return
-        latency_s += self.config.network_delay_s
-        t_ns = rx_t_ns - round(latency_s * 1e9)
+        delay_ns = round(self.config.network_delay_s * 1e9)
+        if clock_hz > 0:
+            sync = self.server_clock
+            sync.update(frame.transmit_ticks * 1_000_000_000 // clock_hz, rx_t_ns)
+            t_ns = min(sync.map(frame.camera_mid_exposure_ticks * 1_000_000_000 // clock_hz),
+                       rx_t_ns) - delay_ns
+            self.monitor.set_server_clock(sync.offset_ns * 1e-9, sync.drift_ppm
+                                          if sync.rate_known else math.nan)
+        else:
+            t_ns = rx_t_ns - round(latency_s * 1e9) - delay_ns
+        latency_s = (rx_t_ns - t_ns) * 1e-9
         bid = self._body_id
         main = None
         if bid is not None:

@@ -107,6 +107,8 @@ class MocapStats:
     age_s: float  # now - capture time of the newest valid sample; inf if none
     latency_s: float  # of the newest frame; NaN if unknown
     implausible_samples: int = 0  # poses or frames outside PoseLimits, dropped
+    clock_offset_s: float = math.nan  # server clock -> host clock (host - server); NaN if none
+    clock_drift_ppm: float = math.nan  # rate error of the server's clock; NaN until learnt
 
 
 @runtime_checkable
@@ -155,6 +157,11 @@ class StreamMonitor:
         self.implausible_samples = 0
         self._last_valid_t_ns: int | None = None
         self._latency_s = math.nan
+        self._clock_est = (math.nan, math.nan)
+
+    def set_server_clock(self, offset_s: float, drift_ppm: float) -> None:
+        """The server clock as the client's clock sync sees it (offset, drift)."""
+        self._clock_est = (offset_s, drift_ppm)
 
     def count_malformed(self) -> None:
         with self._lock:
@@ -203,7 +210,7 @@ class StreamMonitor:
             return MocapStats(self.frames_received, self.frames_dropped, self.frame_jumps,
                               self.invalid_samples, self.malformed_packets,
                               self.foreign_packets, rate, age, self._latency_s,
-                              self.implausible_samples)
+                              self.implausible_samples, *self._clock_est)
 
 
 class FrameWaits:

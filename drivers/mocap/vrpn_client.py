@@ -12,8 +12,11 @@ connection is re-opened; a report with a short payload is counted and dropped.
 VRPN carries no frame number, no latency and no validity flag. Hence:
 
 - ``frame_number`` counts reports (no dropped-frame count is possible);
-- ``t_ns`` = arrival time minus the configured ``latency_s`` (the system latency of the MoCap
-  chain, measured once in the lab) — the server's timestamp is on its own clock;
+- ``t_ns`` = the report's server timestamp (absolute, on the server's own clock) mapped onto
+  the injected clock by :class:`drivers.clock_sync.ClockSync` (offset and drift, on the
+  earliest arrivals; never later than the arrival), minus the configured ``latency_s``: the
+  smallest latency of the MoCap chain, measured once in the lab, which one-way stamps cannot
+  see; ``latency_s`` of a sample is arrival minus ``t_ns``;
 - a body the server stops reporting (occluded) becomes a ``MISSING`` sample once its newest
   report is older than ``stale_after_s``: the stale pose is never returned as current.
 
@@ -38,6 +41,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from config.schema import ConfigValueError
+from drivers.clock_sync import ClockSync
 from drivers.mocap import vrpn
 from drivers.mocap.frames import FrameConfig, FrameTransform
 from drivers.mocap.pose import (
@@ -94,6 +98,7 @@ class VrpnClient(FrameWaits):
         self._clock = clock
         self._transform = FrameTransform(config.frames)
         self.monitor = StreamMonitor(clock)
+        self.server_clock = ClockSync()  # the report stamps' clock -> ours
         self._cond = threading.Condition()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -229,12 +234,18 @@ class VrpnClient(FrameWaits):
                 self.monitor.count_malformed()
                 continue
             if report.sensor == self.config.sensor:
-                self._on_report(report)
+                self._on_report(report, m.tv_sec * 1_000_000_000 + m.tv_usec * 1000)
 
-    def _on_report(self, report: vrpn.TrackerPose) -> None:
+    def _on_report(self, report: vrpn.TrackerPose, server_t_ns: int | None = None) -> None:
         rx = self._clock()
-        lat = self.config.latency_s
-        t_ns = rx - round(lat * 1e9)
+        if server_t_ns is None:
+            t_ns = rx - round(self.config.latency_s * 1e9)
+        else:
+            sync = self.server_clock
+            t_ns = sync.update(server_t_ns, rx) - round(self.config.latency_s * 1e9)
+            self.monitor.set_server_clock(sync.offset_ns * 1e-9, sync.drift_ppm
+                                          if sync.rate_known else math.nan)
+        lat = (rx - t_ns) * 1e-9
         limits = self.config.limits
         status = TrackingStatus.OK
         pos, q = NAN3, NAN4

@@ -124,10 +124,17 @@ class FlightCtrlEmulatorConfig:
     faults: WireFaults = field(default_factory=WireFaults)
     record_truth: bool = False
     """Keep every sent ``I`` sample (with whether the wire altered it) for tests."""
+    board_clock_error_ppm: float = 0.0
+    """Rate error of the board's crystal (-12000: 1.2 % slow): every stream period is that
+    much longer in true time (a 2 ms ``I`` period lasts 2.024 ms), in realtime and in lockstep
+    alike. In lockstep each ``w`` then advances the vehicle by the longer period, so a host
+    that counts samples x 2 ms runs slow against the vehicle, as it would on such a board."""
 
     def __post_init__(self) -> None:
         if not 1 <= self.n_motors <= 15:
             raise ConfigValueError("n_motors", f"{self.n_motors} outside 1..15")
+        if not abs(self.board_clock_error_ppm) <= 50_000.0:
+            raise ConfigValueError("board_clock_error_ppm", "must be within +-50000 ppm")
         for name in ("watchdog_s", "lockstep_grace_s", "lockstep_default_period_s",
                      "motor_start_s"):
             if not getattr(self, name) > 0.0:
@@ -472,7 +479,9 @@ class EmulatedFlightCtrl:
             self._periods_ns.pop(key, None)
             self._due_ns.pop(key, None)
         else:
-            self._periods_ns[key] = period_ns
+            # the board's clock: a period it counts lasts 1 / (1 + error) of it in true time
+            self._periods_ns[key] = round(period_ns / (1.0 + self.config.board_clock_error_ppm
+                                                       * 1e-6))
             self._due_ns[key] = self._sim_ns
 
     def _next_event_ns(self) -> int | None:

@@ -99,6 +99,10 @@ class NatNetEmulatorConfig:
     frame_jump_frames: int = spec(10_000, ge=2)
     loss_probability: float = spec(0.0, ge=0.0, le=1.0, doc="per frame, packet not sent")
     high_res_clock_hz: int = spec(10_000_000, ge=1)
+    server_clock_offset_s: float = spec(0.0, ge=0.0, le=1e6,
+                                        doc="the server's clock minus the emulator's")
+    server_clock_drift_ppm: float = spec(0.0, ge=-50_000.0, le=50_000.0,
+                                         doc="rate error of the server's clock")
     client_timeout_s: float = spec(10.0, gt=0.0)
     app_name: str = "Motive"
     seed: int = 0
@@ -389,8 +393,10 @@ class NatNetServer:
                                                     0x04 if visible else 0x01, 0.0002))
             marker_sets.append(natnet.MarkerSetData(name, tuple(mk)))
         freq = cfg.high_res_clock_hz
-        t_mid = round(t_capture_s * freq)
-        t_tx = round((t_capture_s + cfg.latency_s) * freq)
+        # the stamps are on the server's own clock (offset and rate error configurable)
+        rate = 1.0 + cfg.server_clock_drift_ppm * 1e-6
+        t_mid = round((cfg.server_clock_offset_s + t_capture_s * rate) * freq)
+        t_tx = round((cfg.server_clock_offset_s + (t_capture_s + cfg.latency_s) * rate) * freq)
         params = 0x02 if self._models_changed else 0
         self._models_changed = False
         frame = natnet.FrameOfData(

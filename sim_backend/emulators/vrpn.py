@@ -56,6 +56,10 @@ class VrpnEmulatorConfig:
     occlusion_frames: int = spec(10, ge=1)
     seed: int = 0
     frames: FrameConfig = field(default_factory=lambda: FrameConfig(up_axis="z"))
+    server_clock_offset_s: float = spec(0.0, ge=-1e6, le=1e6,
+                                        doc="the report stamps' clock minus the wall clock")
+    server_clock_drift_ppm: float = spec(0.0, ge=-50_000.0, le=50_000.0,
+                                         doc="rate error of the stamps' clock")
 
 
 class _Conn:
@@ -77,6 +81,7 @@ class VrpnServer:
         self._vehicle = vehicle
         self._lock = lock or threading.Lock()
         self._wall = wall_clock
+        self._clock0_s = wall_clock()  # where the stamps' clock error starts to accumulate
         self._transform = FrameTransform(cfg.frames)
         self._rng = np.random.default_rng(cfg.seed)
         self._tcp: socket.socket | None = None
@@ -298,6 +303,12 @@ class VrpnServer:
                                    vrpn.encode_pos_quat(vrpn.TrackerPose(cfg.sensor, p_m, q_m)),
                                    t_s)
 
+    def server_time_s(self, wall_s: float) -> float:
+        """The stamp the server's clock puts on a report captured at ``wall_s``."""
+        cfg = self.config
+        return (wall_s + cfg.server_clock_offset_s
+                + (wall_s - self._clock0_s) * cfg.server_clock_drift_ppm * 1e-6)
+
     def _stream(self) -> None:
         period = 1.0 / self.config.rate_hz
         pending: deque[tuple[float, bytes]] = deque()
@@ -307,7 +318,7 @@ class VrpnServer:
             if now - next_capture > 0.25:
                 next_capture = now
             while next_capture <= now:
-                msg = self._report(now)
+                msg = self._report(self.server_time_s(now))
                 if msg is not None:
                     pending.append((now + self.config.latency_s, msg))
                 next_capture += period
