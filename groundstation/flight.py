@@ -70,6 +70,12 @@ class HealthSnapshot:
     on_ground: bool
     mission_phase: Literal["takeoff", "mission", "land", "done"]
     motors_spinning: bool
+    #: the estimate has left the ground (above the resting height by the lift-off margin)
+    lifted_off: bool = True
+    #: the estimate is at the take-off height within its tolerance, and steady
+    takeoff_reached: bool = True
+    #: MoCap and the IMU agree (the estimator is not re-seeding from MoCap again and again)
+    mocap_consistent: bool = True
 
 
 @dataclass(frozen=True)
@@ -85,6 +91,12 @@ class SafetyLimits:
     failsafe_action: Literal["land", "cut"]
     servo_fault_action: Literal["hold", "land"]
     spin_up_s: float = 1.0
+    #: TAKEOFF without lift-off this long (at the take-off thrust) -> abort: idle, disarm
+    liftoff_timeout_s: float = 5.0
+    #: the planned take-off is over but the take-off height is not reached this long -> land
+    takeoff_settle_timeout_s: float = 10.0
+    #: bench with props off: arm, spin at idle this long after the spin-up, disarm; no take-off
+    props_off_spin_s: float | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -112,6 +124,8 @@ class FlightStateMachine:
     transitions: list[Transition] = field(default_factory=list)
     faults: list[str] = field(default_factory=list)
     _armed_at_s: float = 0.0
+    _takeoff_at_s: float = 0.0
+    _takeoff_over_at_s: float | None = None  # when the planned take-off ended, if not reached
     _stop_requests: int = 0
     _hold_tilt: bool = False
     _land_here: bool = False
@@ -162,11 +176,15 @@ class FlightStateMachine:
         if start in MOTORS_ON:
             self._check_failsafes(t_s, h)
         s = self.state
-        if s is FlightState.ARMED and t_s - self._armed_at_s >= self.limits.spin_up_s \
+        lim = self.limits
+        if s is FlightState.ARMED and lim.props_off_spin_s is not None:
+            self._bench_spin(t_s, h, lim.props_off_spin_s)
+        elif s is FlightState.ARMED and t_s - self._armed_at_s >= lim.spin_up_s \
                 and h.motors_spinning:  # every BL-Ctrl reports `spinning`
             self._go(t_s, FlightState.TAKEOFF, "motors at idle speed")
-        elif s is FlightState.TAKEOFF and h.mission_phase != "takeoff":
-            self._go(t_s, FlightState.MISSION, "takeoff complete")
+            self._takeoff_at_s, self._takeoff_over_at_s = t_s, None
+        elif s is FlightState.TAKEOFF:
+            self._takeoff(t_s, h)
         elif s is FlightState.MISSION and h.mission_phase in ("land", "done"):
             self._land(t_s, "mission complete", here=False)
         elif s is FlightState.LANDING and h.on_ground:
@@ -187,6 +205,45 @@ class FlightStateMachine:
         return self.state is FlightState.DISARMED
 
     # -- internals ----------------------------------------------------------------------
+    def _takeoff(self, t_s: float, h: HealthSnapshot) -> None:
+        """TAKEOFF is decided on the estimate, not on the mission's clock: MISSION once the
+        planned take-off is over *and* the vehicle is at its height; no lift-off in time
+        aborts (the rotors, the props or the estimate are not what the plan assumed)."""
+        lim = self.limits
+        if not h.lifted_off:
+            if t_s - self._takeoff_at_s >= lim.liftoff_timeout_s:
+                reason = (f"no lift-off within {lim.liftoff_timeout_s:g} s at the take-off "
+                          "thrust: take-off aborted")
+                self._fault(t_s, reason)
+                self._go(t_s, FlightState.DISARMED, reason)
+            return
+        if h.mission_phase == "takeoff":
+            return
+        if h.takeoff_reached:
+            self._go(t_s, FlightState.MISSION, "takeoff complete")
+            return
+        if self._takeoff_over_at_s is None:
+            self._takeoff_over_at_s = t_s
+        elif t_s - self._takeoff_over_at_s >= lim.takeoff_settle_timeout_s:
+            reason = (f"take-off height not reached {lim.takeoff_settle_timeout_s:g} s after "
+                      "the planned take-off")
+            self._fault(t_s, reason)
+            self._land(t_s, f"failsafe: {reason}", here=True)
+
+    def _bench_spin(self, t_s: float, h: HealthSnapshot, spin_s: float) -> None:
+        """Props-off bench: the motors run at idle, nothing takes off; the test passes when
+        every BL-Ctrl reports spinning after the spin-up, and ends after ``spin_s`` more."""
+        since = t_s - self._armed_at_s
+        if since < self.limits.spin_up_s + spin_s:
+            return
+        if h.motors_spinning:
+            self._go(t_s, FlightState.DISARMED,
+                     f"props-off bench test complete: every motor spun at idle for {spin_s:g} s")
+        else:
+            self._fault(t_s, "props-off bench test: not every motor reports spinning")
+            self._go(t_s, FlightState.DISARMED,
+                     "props-off bench test failed: not every motor reports spinning")
+
     def _check_failsafes(self, t_s: float, h: HealthSnapshot) -> None:
         lim = self.limits
         if h.imu_age_s > lim.imu_timeout_s or not h.imu_rate_ok:
@@ -202,10 +259,18 @@ class FlightStateMachine:
         if self.state is FlightState.ARMED:
             return  # on the ground, idle: nothing else can go wrong that landing would fix
         reason = None
+        if not h.mocap_consistent and self.state is FlightState.TAKEOFF:
+            # near the ground with a position that cannot be trusted: do not climb on it
+            what = "MoCap and IMU disagree (the estimator re-seeds from MoCap again and again)"
+            self._fault(t_s, what)
+            self._go(t_s, FlightState.DISARMED, f"{what}: take-off aborted")
+            return
         if h.mocap_age_s > lim.mocap_timeout_s:
             reason = f"MoCap lost for {h.mocap_age_s:.2f} s (> {lim.mocap_timeout_s:g} s)"
         elif not h.estimator_ok:
             reason = "estimator unhealthy"
+        elif not h.mocap_consistent:
+            reason = "MoCap and IMU disagree (the estimator re-seeds from MoCap again and again)"
         elif any(p < lo or p > hi for p, lo, hi in
                  zip(h.pos_w_m, lim.geofence_min_m, lim.geofence_max_m, strict=True)):
             reason = "geofence breached at ({:.2f}, {:.2f}, {:.2f}) m".format(*h.pos_w_m)

@@ -39,7 +39,7 @@ from drivers.dynamixel.device import ServoState
 from drivers.errors import DeviceLostError, DriverError
 from drivers.mikrokopter.device import LinkHealth
 from estimator.types import HealthFlag
-from estimator.ukf import Ukf
+from estimator.ukf import PoseVerdict, Ukf
 from groundstation.flight import (
     FLYING,
     FlightState,
@@ -85,6 +85,15 @@ LOCKSTEP_SLICE_S = 0.003
 #: realtime: longest single wait for an IMU sample; a gap is bridged by resending the last
 #: command at least this often until it exceeds the session's imu_timeout_s
 IMU_GAP_SLICE_S = 0.01
+#: take-off, decided on the estimate: lifted off once this far above the resting height; at
+#: the take-off height once within the tolerance and slower than the speed for the time
+LIFTOFF_MARGIN_M = 0.05
+TAKEOFF_TOLERANCE_M = 0.05
+TAKEOFF_STEADY_M_S = 0.1
+TAKEOFF_STEADY_S = 0.3
+#: MoCap inconsistent with the IMU: this many UKF re-seeds within this window
+RESEEDS_INCONSISTENT = 3
+RESEED_WINDOW_S = 1.0
 #: ticks between two evaluations of the preflight checks (0.1 s at 500 Hz)
 PREFLIGHT_CHECK_TICKS = 50
 
@@ -138,6 +147,10 @@ class FlightLoop:
         self.sm = FlightStateMachine(limits)
         self.computer = FlightComputer(params, mission)
         self._measured_interval = mission.measured_interval_s()
+        # Take-off: the plan's take-off ends where its measured part starts; it waits there
+        # (the mission clock stops) until the estimate is at that height (flight.py decides)
+        self._takeoff_end_tm = self._measured_interval[0] if self._measured_interval else 0.0
+        self._takeoff_target_z = mission.reference(self._takeoff_end_tm).pos_w_m[2]
         self.row_sink = row_sink
         self.event_sink = event_sink
         self.period_ns = round(1e9 / options.imu_rate_hz)
@@ -162,6 +175,8 @@ class FlightLoop:
         #: numbers, so a degraded link is caught on the simulated clock too)
         self.imu_rate_fraction = 1.0
         self._longest_gap_ns = 0
+        #: capture times of the UKF's recent re-seeds from MoCap (persistent disagreement)
+        self._reseeds: collections.deque[float] = collections.deque(maxlen=8)
 
     # -- the loop --------------------------------------------------------------------------
     def run(self) -> LoopResult:
@@ -172,6 +187,9 @@ class FlightLoop:
         last_frame = -1
         last_pose_t_s = -math.inf
         takeoff_t_s: float | None = None
+        takeoff_wait_s = 0.0  # mission-clock time held at the take-off end for the vehicle
+        lifted_off = False
+        steady_since_s: float | None = None  # at the take-off height and steady since
         land_here: LandHere | None = None
         alpha = 0.0
         servo_state = None
@@ -278,8 +296,9 @@ class FlightLoop:
                     cap_s = pose.t_ns * 1e-9 - t0_s
                     # 3. (update part) the UKF replays from the capture time; it needs one
                     # IMU sample first (its clock starts with the first prediction)
-                    if math.isfinite(self.ukf.t_s):
-                        self.ukf.update_pose(cap_s, pose.pos_w_m, pose.q_wb)
+                    if math.isfinite(self.ukf.t_s) and self.ukf.update_pose(
+                            cap_s, pose.pos_w_m, pose.q_wb) is PoseVerdict.RESET:
+                        self._reseeds.append(cap_s)  # MoCap refused, then taken as truth
                     last_pose_t_s = cap_s
                     self._counters["poses_fused"] += 1
             # a faulted servo is retried at 2 Hz only (each failed cycle costs a timeout)
@@ -355,14 +374,28 @@ class FlightLoop:
                     elif timed_out:
                         end_reason = "preflight checks failed"
                         sm.request(t_s, "stop")
-            tm = t_s - takeoff_t_s if takeoff_t_s is not None else 0.0
+            tm = t_s - takeoff_t_s - takeoff_wait_s if takeoff_t_s is not None else 0.0
+            if sm.state is FlightState.TAKEOFF and tm > self._takeoff_end_tm:
+                takeoff_wait_s += tm - self._takeoff_end_tm
+                tm = self._takeoff_end_tm
             phase = self._mission_phase(tm)
+            z = est_state.pos_w_m[2]
+            lifted_off = lifted_off or (
+                estimator_ok and z > opts.ground_z_m + LIFTOFF_MARGIN_M)
+            if (estimator_ok and abs(z - self._takeoff_target_z) < TAKEOFF_TOLERANCE_M
+                    and abs(est_state.vel_w_m_s[2]) < TAKEOFF_STEADY_M_S):
+                steady_since_s = t_s if steady_since_s is None else steady_since_s
+            else:
+                steady_since_s = None
+            at_height = steady_since_s is not None and t_s - steady_since_s >= TAKEOFF_STEADY_S
             spinning = self.imu.motors().all_spinning if sm.state is FlightState.ARMED else True
             on_ground = (sm.state is FlightState.LANDING and ground_since_s is not None
                          and t_s - ground_since_s > TOUCHDOWN_CONFIRM_S)
             ground_since_s = (ground_since_s or t_s) if self._near_ground(est_state) else None
             h = self._health(0.0, link_ok, t_s - last_pose_t_s, estimator_ok, servo_health,
-                             battery_v, est_state, on_ground, phase, spinning)
+                             battery_v, est_state, on_ground, phase, spinning,
+                             lifted_off=lifted_off, takeoff_reached=at_height,
+                             mocap_consistent=self._mocap_consistent(t_s))
             if sm.state in FLYING:
                 extremes.add(h, gap_s, self.imu_rate_fraction)
             n_transitions = len(sm.transitions)
@@ -524,6 +557,10 @@ class FlightLoop:
             imu_rate = stats.imu.measured_rate_hz
             imu_ok = imu_rate >= IMU_MIN_RATE_FRACTION * self.opts.imu_rate_hz
             imu_value = f"{imu_rate:.0f} Hz of {self.opts.imu_rate_hz:.0f} Hz"
+            clk = stats.imu_clock  # the board's sample clock against ours (clock sync)
+            if clk.known:
+                imu_value += (f"; board clock {clk.rate_hz:.1f} Hz, offset {clk.offset_s:+.3f} s,"
+                              f" drift {clk.drift_ppm:+.0f} ppm")
         checks = [
             ("flight-ctrl streaming IMU >= 80 % of the set rate", imu_ok, imu_value),
             ("servo answers, multi-turn, at the commanded angle",
@@ -534,7 +571,10 @@ class FlightLoop:
              f"{servo.health.name}, tilt {math.degrees(servo.tilt_rad):.2f} deg"),
             ("MoCap sees the body at >= 80 % of its rate",
              t_s - last_pose_t_s < 0.1 and (mstats.rate_hz >= 80.0 or self.opts.lockstep),
-             f"{mstats.rate_hz:.0f} Hz, newest pose {1e3 * (t_s - last_pose_t_s):.0f} ms old"),
+             f"{mstats.rate_hz:.0f} Hz, newest pose {1e3 * (t_s - last_pose_t_s):.0f} ms old"
+             + (f"; server clock offset {mstats.clock_offset_s:+.3f} s, drift "
+                f"{mstats.clock_drift_ppm:+.1f} ppm" if math.isfinite(mstats.clock_drift_ppm)
+                else "")),
             ("estimator converged", initialized and self.ukf.health().ok,
              f"flags {self.ukf.health().flags!r}"),
             ("vehicle at the mission's start position",
@@ -568,8 +608,9 @@ class FlightLoop:
 
     def _health(self, imu_age_s: float, link_ok: bool, mocap_age_s: float, estimator_ok: bool,
                 servo: ServoHealth, battery_v: float, est: VehicleState, on_ground: bool,
-                phase: Literal["takeoff", "mission", "land", "done"], spinning: bool
-                ) -> HealthSnapshot:
+                phase: Literal["takeoff", "mission", "land", "done"], spinning: bool,
+                lifted_off: bool = True, takeoff_reached: bool = True,
+                mocap_consistent: bool = True) -> HealthSnapshot:
         q = est.q_wb
         r33 = 1.0 - 2.0 * (q[1] * q[1] + q[2] * q[2])
         return HealthSnapshot(
@@ -577,7 +618,19 @@ class FlightLoop:
             estimator_ok=estimator_ok, servo=servo, battery_v=battery_v, pos_w_m=est.pos_w_m,
             body_tilt_deg=math.degrees(math.acos(max(-1.0, min(1.0, r33)))),
             on_ground=on_ground, mission_phase=phase, motors_spinning=spinning,
+            lifted_off=lifted_off, takeoff_reached=takeoff_reached,
+            mocap_consistent=mocap_consistent,
         )
+
+    def _mocap_consistent(self, t_s: float) -> bool:
+        """False while MoCap and the IMU keep disagreeing: the UKF re-seeded from MoCap at
+        least ``RESEEDS_INCONSISTENT`` times within ``RESEED_WINDOW_S`` (one re-seed is a marker
+        swap or a recalibrated room; repeated ones are a frozen or wrong tracker)."""
+        n = 0
+        for r in self._reseeds:
+            if t_s - r <= RESEED_WINDOW_S:
+                n += 1
+        return n < RESEEDS_INCONSISTENT
 
     def _push_row(self, t_s: float, tick: ControlTick | None, alpha: float,
                   est: VehicleState, spins: tuple[float, ...], eta_f: float,

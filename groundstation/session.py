@@ -43,6 +43,7 @@ from drivers.mocap.natnet_client import NatNetClient
 from drivers.mocap.pose import MocapError
 from drivers.mocap.uri import open_pose_source
 from estimator.ukf import Ukf
+from groundstation.flight import SafetyLimits
 from groundstation.gcs import GcsOptions, gcs_options, start_gcs
 from groundstation.gcs import summary_lines as mavlink_summary_lines
 from groundstation.loop import FlightLoop, LoopOptions, LoopResult
@@ -231,6 +232,7 @@ class FlightSession:
                  echo_events: bool = True, corrupt_prob: float = 0.0,
                  realtime_settings: bool | None = None,
                  scripted_requests: tuple[tuple[float, str], ...] = (),
+                 props_off: bool = False,
                  dashboard: str | None = None, mavlink: str | None = None,
                  mavlink_key_file: str | None = None) -> None:
         self.cfg = cfg
@@ -258,6 +260,8 @@ class FlightSession:
         #: the installed stop-signal handlers (groundstation.signals.StopSignals), if any:
         #: the end reason names the signals that stopped the flight
         self.stop_signals: Any = None
+        #: bench with the propellers off: arm, idle spin test, disarm; no take-off
+        self.props_off = props_off
 
     def _dashboard_mode(self) -> str:
         if self.dashboard != "auto":
@@ -308,23 +312,25 @@ class FlightSession:
 
             # The devices first: a device that cannot be opened ends the session with one
             # line naming it, before any record exists.
-            fc = _open_device("flight-ctrl", fc_uri, lambda: FlightCtrl.open(
-                fc_uri, FlightCtrlConfig(imu_rate_hz=backend.imu_rate_hz)))
-            ident = _open_device("flight-ctrl", fc_uri, fc.connect)
-            if lockstep:  # every sample answers our own `w`: read it in the loop's thread
-                fc.read_in_caller_thread()
-            events.put_nowait(f"flight-ctrl: {ident.protocol} firmware {ident.firmware_id} "
-                              f"on {fc_uri}")
-            self._check_interrupted("opening the Flight-Ctrl")
             tilt = self.params.tilt
             servo = TiltServo(TiltServoConfig(
                 uri=servo_uri, gear_ratio=tilt.worm_ratio, zero_offset_steps=zero_steps,
                 max_tilt_deg=tilt.max_tilt_deg, max_tilt_rate_deg_s=tilt.max_rate_deg_s,
                 rate_hz=50.0, serve="on_request" if lockstep else "periodic",
-                # in lockstep the tilt planner's ramp is the rate limit (sim time)
-                rate_limit_goal=not lockstep))
+                # in lockstep the tilt planner's ramp is the rate limit (sim time), and the
+                # SDK's reply timeout (wall clock) is long: on a loaded host a late reply must
+                # not become a servo fault that changes the flight (determinism for a seed)
+                rate_limit_goal=not lockstep,
+                sdk_latency_timer_ms=100.0 if lockstep else 16.0))
             with stop_signals_blocked():  # its process must not die of a stray Ctrl-C
                 _open_device("servo", servo_uri, servo.start)
+            if lockstep:
+                # one cycle now, while no simulated time runs: the servo process has started
+                # its SDK and answered once, so the loop's first cycles do not depend on how
+                # long a loaded host took to spawn it (a repeatable run); a servo that does
+                # not answer is the preflight's to report
+                with contextlib.suppress(Exception):
+                    servo.sync_cycle(LOCKSTEP_SERVO_START_S)
             self._check_interrupted("starting the tilt servo")
             loop_box: list[FlightLoop] = []
 
@@ -338,6 +344,18 @@ class FlightSession:
             else:
                 _open_device("mocap", mocap_uri, mocap.start)
             self._check_interrupted("connecting to the MoCap server")
+            ukf = Ukf(_estimator_config(cfg, self.params))  # before the IMU streams
+            # The Flight-Ctrl last: once its IMU streams, an emulated board waits for `w` only
+            # for its lockstep grace (then free-runs, and a run is no longer repeatable), so
+            # nothing slow (the servo process, the MoCap handshake) may come after it.
+            fc = _open_device("flight-ctrl", fc_uri, lambda: FlightCtrl.open(
+                fc_uri, FlightCtrlConfig(imu_rate_hz=backend.imu_rate_hz)))
+            ident = _open_device("flight-ctrl", fc_uri, fc.connect)
+            if lockstep:  # every sample answers our own `w`: read it in the loop's thread
+                fc.read_in_caller_thread()
+            events.put_nowait(f"flight-ctrl: {ident.protocol} firmware {ident.firmware_id} "
+                              f"on {fc_uri}")
+            self._check_interrupted("opening the Flight-Ctrl")
 
             with stop_signals_blocked():  # the shared-memory tracker process starts here
                 ring = TelemetryRing(RECORD_DTYPE, capacity=1 << 14)
@@ -358,7 +376,6 @@ class FlightSession:
                                     self.mavlink, status, commands))
             with stop_signals_blocked():  # it ignores them once its interpreter is up
                 tel.start()
-            ukf = Ukf(_estimator_config(cfg, self.params))
             row_sink = ring.push
 
             def event_sink(text: str) -> None:
@@ -367,7 +384,7 @@ class FlightSession:
 
             loop = FlightLoop(
                 params=self.params, mission=self.mission, imu=fc, tilt=servo, pose=mocap,
-                estimator=ukf, limits=cfg.safety.limits(),
+                estimator=ukf, limits=_limits(cfg, self.props_off),
                 options=LoopOptions(lockstep=lockstep, imu_rate_hz=backend.imu_rate_hz,
                                     ground_z_m=self.mission.start_pos_w_m[2],
                                     scripted_requests=self.scripted_requests),
@@ -451,6 +468,21 @@ def _open_device(what: str, uri: str, open_it: Callable[[], T]) -> T:
     except (DriverError, MocapError, OSError, TimeoutError) as exc:
         text = str(exc) or type(exc).__name__
         raise SessionError(text if uri in text else f"{what} {uri}: {text}") from None
+
+
+#: lockstep: how long the first servo cycle may take (the servo process starting)
+LOCKSTEP_SERVO_START_S = 20.0
+#: props-off bench test: idle spin after the spin-up, seconds
+PROPS_OFF_SPIN_S = 3.0
+
+
+def _limits(cfg: SessionConfig, props_off: bool) -> SafetyLimits:
+    limits = cfg.safety.limits()
+    if props_off:
+        from dataclasses import replace
+
+        limits = replace(limits, props_off_spin_s=PROPS_OFF_SPIN_S)
+    return limits
 
 
 def merge_truth(record_path: Path, truth_path: Path, imu_rate_hz: float) -> int:

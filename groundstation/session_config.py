@@ -63,7 +63,8 @@ class EmulatedBackend:
     faults: tuple[str, ...] = spec((), doc="faults to rehearse, KIND@T[:VALUE], T in simulated "
                                    "seconds: mocap-dropout:S, fc-disconnect, servo-silent, "
                                    "battery-sag:V, tilt-kick:DEG_S, imu-rate:FRACTION, "
-                                   "imu-gap:S, mocap-jump:M")
+                                   "imu-gap:S, mocap-jump:M, rotor-thrust:SCALE, "
+                                   "mocap-freeze")
     corrupt_prob: float = spec(0.0, ge=0.0, le=0.1,
                                doc="byte corruption probability on the Flight-Ctrl link")
 
@@ -93,6 +94,12 @@ class SafetyConfig:
     failsafe_action: Literal["land", "cut"] = spec("land")
     servo_fault_action: Literal["hold", "land"] = spec("hold")
     spin_up_s: float = spec(1.0, ge=0.0, le=10.0, doc="idle spin before takeoff")
+    # the shipped take-offs leave the ground within ~1 s; 0.5 s is too short for a rotor
+    # spin-up on a heavy vehicle, beyond 30 s the integrators have wound up on the ground
+    liftoff_timeout_s: float = spec(5.0, ge=0.5, le=30.0, doc="take-off without lift-off "
+                                    "this long -> abort, idle, disarm")
+    takeoff_settle_timeout_s: float = spec(10.0, ge=1.0, le=60.0, doc="planned take-off "
+                                           "over, take-off height not reached this long -> land")
 
     def __post_init__(self) -> None:
         for axis, (lo, hi) in enumerate(zip(self.geofence_min_m, self.geofence_max_m,
@@ -112,7 +119,8 @@ class SafetyConfig:
             max_body_tilt_deg=self.max_body_tilt_deg, mocap_timeout_s=self.mocap_timeout_s,
             imu_timeout_s=self.imu_timeout_s, min_battery_v=self.min_battery_v,
             failsafe_action=self.failsafe_action, servo_fault_action=self.servo_fault_action,
-            spin_up_s=self.spin_up_s,
+            spin_up_s=self.spin_up_s, liftoff_timeout_s=self.liftoff_timeout_s,
+            takeoff_settle_timeout_s=self.takeoff_settle_timeout_s,
         )
 
 

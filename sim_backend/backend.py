@@ -75,6 +75,10 @@ class BackendOptions:
     watchdog_s: float = 0.25
     faults: tuple[ScheduledFault, ...] = ()
     truth_path: Path | None = None
+    # clock errors to rehearse the time base on (not faults: they are there from the start)
+    board_clock_ppm: float = 0.0
+    mocap_clock_offset_s: float = 0.0
+    mocap_clock_ppm: float = 0.0
 
 
 FaultKind = Literal["mocap-dropout", "fc-disconnect", "servo-silent", "battery-sag",
@@ -97,7 +101,11 @@ class ScheduledFault:
       others are lost on the wire, spread evenly: a degraded link);
     - ``imu-gap@T:SECONDS``: every IMU sample of that span is lost on the wire;
     - ``mocap-jump@T:METRES``: from T on the MoCap reports the body that far off along world x
-      (a marker swap, a recalibrated room).
+      (a marker swap, a recalibrated room);
+    - ``rotor-thrust@T:SCALE``: from T on every rotor's thrust is SCALE times the model's
+      (0: propellers off, or rotors that cannot lift);
+    - ``mocap-freeze@T``: from T on the MoCap keeps reporting the pose it had at T (a frozen
+      tracker that still streams).
     """
 
     kind: FaultKind
@@ -126,13 +134,15 @@ class ScheduledFault:
             raise ValueError(f"fault {text!r}: times must be >= 0")
         if kind == "imu-rate" and not 0.0 <= dur_s <= 1.0:
             raise ValueError(f"fault {text!r}: FRACTION of the IMU samples in [0, 1]")
+        if kind == "rotor-thrust" and not 0.0 <= dur_s <= 2.0:
+            raise ValueError(f"fault {text!r}: SCALE of the rotors' thrust in [0, 2]")
         if kind in ("battery-sag", "imu-rate", "mocap-jump", "tilt-kick") and not dur:
             raise ValueError(f"fault {text!r}: {kind} needs a VALUE ({kind}@T:VALUE)")
         return cls(kind, t_s, dur_s)  # type: ignore[arg-type]
 
 
 FAULT_KINDS = ("mocap-dropout", "fc-disconnect", "servo-silent", "battery-sag", "tilt-kick",
-               "imu-rate", "imu-gap", "mocap-jump")
+               "imu-rate", "imu-gap", "mocap-jump", "rotor-thrust", "mocap-freeze")
 #: a tilt kick acts over this time, in this many equal steps of the body rate
 TILT_KICK_S = 0.05
 TILT_KICK_STEPS = 25
@@ -223,6 +233,7 @@ class _SteppedVehicle:
         # scheduled faults that alter what the devices read (not the physics)
         self.battery_sag_v = 0.0
         self.mocap_offset_w_m: Vec3 = (0.0, 0.0, 0.0)
+        self.mocap_frozen: PoseReading | None = None  # mocap-freeze: the pose it sticks at
 
     def now_s(self) -> float:
         return self.sim.now_s()
@@ -259,6 +270,8 @@ class _SteppedVehicle:
 
     def true_pose(self) -> PoseReading:
         pose = self.sim.true_pose()
+        if self.mocap_frozen is not None:  # same place and attitude, the time goes on
+            return PoseReading(pose.t_s, self.mocap_frozen.pos_w_m, self.mocap_frozen.q_wb)
         o = self.mocap_offset_w_m
         if o == (0.0, 0.0, 0.0):
             return pose
@@ -285,7 +298,8 @@ class EmulatedVehicleBackend:
             self.vehicle, lock=self.lock,
             link_path=link / "flight-ctrl" if link else None,
             config=FlightCtrlEmulatorConfig(clock=opts.clock, faults=opts.wire_faults,
-                                            watchdog_s=opts.watchdog_s),
+                                            watchdog_s=opts.watchdog_s,
+                                            board_clock_error_ppm=opts.board_clock_ppm),
         )
         self.servo = EmulatedMX28(
             self.vehicle, lock=self.lock, link_path=link / "servo" if link else None,
@@ -303,6 +317,8 @@ class EmulatedVehicleBackend:
                 occlusion_probability=p.mocap_dropout_prob,
                 occlusion_frames=1,
                 seed=opts.seed,
+                server_clock_offset_s=opts.mocap_clock_offset_s,
+                server_clock_drift_ppm=opts.mocap_clock_ppm,
             ),
             lock=threading.Lock(),
         )
@@ -338,6 +354,12 @@ class EmulatedVehicleBackend:
                 o = vehicle.mocap_offset_w_m
                 vehicle.mocap_offset_w_m = (o[0] + fault.value, o[1], o[2])
             return jump
+        if fault.kind == "rotor-thrust":
+            return lambda: self.sim.scale_rotor_thrust(fault.value)
+        if fault.kind == "mocap-freeze":
+            def freeze() -> None:
+                vehicle.mocap_frozen = vehicle.true_pose()
+            return freeze
         if fault.kind == "tilt-kick":  # one of TILT_KICK_STEPS (see __init__)
             step = math.radians(fault.value) / TILT_KICK_STEPS
             return lambda: self.sim.kick_body_rate((step, 0.0, 0.0))
@@ -407,6 +429,12 @@ def main(argv: list[str] | None = None) -> int:
                     "(each where permitted)")
     ap.add_argument("--fault", action="append", default=[], metavar="KIND@T[:D]",
                     help=f"inject a fault at simulated time T ({', '.join(FAULT_KINDS)})")
+    ap.add_argument("--board-clock-ppm", type=float, default=0.0,
+                    help="rate error of the board's sample clock (-12000: 1.2 %% slow)")
+    ap.add_argument("--mocap-clock-offset-s", type=float, default=0.0,
+                    help="the MoCap server's clock minus the emulator's (>= 0)")
+    ap.add_argument("--mocap-clock-ppm", type=float, default=0.0,
+                    help="rate error of the MoCap server's clock")
     args = ap.parse_args(argv)
     try:
         faults = tuple(ScheduledFault.parse(f) for f in args.fault)
@@ -425,6 +453,8 @@ def main(argv: list[str] | None = None) -> int:
         seed=args.seed, clock=args.clock, link_dir=args.link_dir,
         wire_faults=WireFaults(corrupt_prob=args.corrupt_prob, seed=args.seed),
         watchdog_s=args.watchdog_s, faults=faults, truth_path=args.truth,
+        board_clock_ppm=args.board_clock_ppm, mocap_clock_offset_s=args.mocap_clock_offset_s,
+        mocap_clock_ppm=args.mocap_clock_ppm,
     ))
     stop = _StopFlags()
     # Handlers only set a flag; the C-level wake-up byte ends the main thread's wait at once.

@@ -357,6 +357,12 @@ class FastHexSimulator:
         x = self._x
         return self.imu.sample(self._t, (x[10], x[11], x[12]), self.specific_force_b())
 
+    def scale_rotor_thrust(self, scale: float) -> None:
+        """Fault hook: every rotor's thrust coefficient times ``scale`` from now on (0: the
+        propellers are off or the rotors produce no thrust; 0.5: a weak battery or wrong props).
+        The drag torques follow the rotor speeds as before."""
+        self.c_f_actual = [c * scale for c in self.c_f_actual]
+
     def kick_body_rate(self, d_omega_b_rad_s: Vec3) -> None:
         """Fault hook: an impulsive torque (a blow to the airframe) changes the body rate by
         ``d_omega_b_rad_s`` at once. No effect while resting on the ground."""

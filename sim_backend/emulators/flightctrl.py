@@ -29,9 +29,10 @@ Clocks (``clock=``):
   frame arrives and then sends the next ``I`` sample (plus any ``M``/``B``/``C`` falling due),
   so a flight runs as fast as the ground station answers and is deterministic. Setting a
   non-zero IMU period sends one ``I`` at once to start the exchange. If no ``w`` arrives for
-  ``lockstep_grace_s`` of wall time (a dead or not-yet-flying ground station), the emulator
-  free-runs in real time until the next ``w``; the watchdog always counts simulated time, so a
-  dead ground station still gets its motors stopped.
+  ``lockstep_grace_s`` of wall time (a dead ground station; before the first ``w`` ever,
+  ``lockstep_first_w_grace_s``: one still starting its other devices), the emulator free-runs
+  in real time until the next ``w``; the watchdog always counts simulated time, so a dead
+  ground station still gets its motors stopped.
 
 Wire faults (:class:`WireFaults`): output paced at a baud rate (10 bits per byte; frames that
 would overflow a 50 ms UART backlog are dropped and counted), random byte corruption and byte
@@ -116,6 +117,8 @@ class FlightCtrlEmulatorConfig:
     board applies the same time to its engine test (``t``), which must be renewed."""
     lockstep_grace_s: float = 2.0
     """Lockstep only: wall time without any ``w`` after which the emulator free-runs."""
+    lockstep_first_w_grace_s: float = 30.0
+    """Lockstep, before any `w` has arrived: the grace before free-running."""
     lockstep_default_period_s: float = 0.002
     """Lockstep step while the IMU stream is off."""
     motor_start_s: float = 0.3
@@ -135,7 +138,8 @@ class FlightCtrlEmulatorConfig:
             raise ConfigValueError("n_motors", f"{self.n_motors} outside 1..15")
         if not abs(self.board_clock_error_ppm) <= 50_000.0:
             raise ConfigValueError("board_clock_error_ppm", "must be within +-50000 ppm")
-        for name in ("watchdog_s", "lockstep_grace_s", "lockstep_default_period_s",
+        for name in ("watchdog_s", "lockstep_grace_s", "lockstep_first_w_grace_s",
+                     "lockstep_default_period_s",
                      "motor_start_s"):
             if not getattr(self, name) > 0.0:
                 raise ConfigValueError(name, "must be > 0")
@@ -234,6 +238,7 @@ class EmulatedFlightCtrl:
         self._imu_total = 0
         self._last_w_ns = 0
         self._last_w_wall = time.monotonic()
+        self._w_seen = False  # lockstep: no `w` yet (the ground station is still starting)
         self._freerun = self.config.clock == "realtime"
         self._sim_ns = 0
         self._start_ns = 0
@@ -349,7 +354,7 @@ class EmulatedFlightCtrl:
                     self._advance_to(self._sim0_ns + round((time.monotonic() - self._wall0) * _NS))
                 self._handle_input(data)
         now = time.monotonic()
-        if not self._freerun and now - self._last_w_wall > self.config.lockstep_grace_s:
+        if not self._freerun and now - self._last_w_wall > self._grace_s():
             self._freerun = True
             self._anchor()
             self._count("freerun_entries")
@@ -375,8 +380,16 @@ class EmulatedFlightCtrl:
             if event is not None:
                 wake = min(wake, self._wall0 + (event - self._sim0_ns) / _NS)
         else:
-            wake = min(wake, self._last_w_wall + self.config.lockstep_grace_s)
+            wake = min(wake, self._last_w_wall + self._grace_s())
         return wake
+
+    def _grace_s(self) -> float:
+        """Lockstep: how long without `w` before free-running. Before the first `w` it is
+        long, so that a ground station that takes a few seconds to start its other devices
+        (on a loaded host) still finds the vehicle where the seed put it: a repeatable run."""
+        if self._w_seen:
+            return self.config.lockstep_grace_s
+        return max(self.config.lockstep_grace_s, self.config.lockstep_first_w_grace_s)
 
     # ---------------------------------------------------------------- input
 
@@ -464,6 +477,7 @@ class EmulatedFlightCtrl:
         else:
             self._count("malformed_received")
         self._last_w_wall = time.monotonic()
+        self._w_seen = True
         if self.config.clock == "lockstep":
             if self._freerun:
                 self._freerun = False

@@ -88,10 +88,14 @@ def test_that_a_cut_serial_link_stops_the_motors_and_ends_the_session(tmp_path: 
     assert rec.rows["t_s"][-1] == pytest.approx(5.996, abs=0.01)
 
 
-def test_that_one_percent_byte_corruption_does_not_stop_the_flight(tmp_path: Path) -> None:
-    out = fly(tmp_path, corrupt=0.01)
+def test_that_half_a_percent_byte_corruption_does_not_stop_the_flight(tmp_path: Path) -> None:
+    # 0.5 % of the bytes corrupted loses about 7 % of the IMU frames: a bad link, still well
+    # above the 80 % rate cut. (At 1 %, about 14 % are lost and a 0.5 s window dips below 80 %
+    # now and then: the IMU-rate failsafe then cuts, as it would on hardware.)
+    out = fly(tmp_path, corrupt=0.005)
     assert states(out)[-1] is FlightState.DISARMED
     assert "mission complete" in [t.reason for t in out.result.transitions]
+    assert out.result.faults == []
     rows = read_record(out.record_path).rows
     measured = rows[rows["measured"] > 0]
     err_mm = 1e3 * np.linalg.norm(measured["pos_w_m"] - measured["pos_ref_w_m"], axis=1)

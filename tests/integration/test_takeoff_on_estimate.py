@@ -1,0 +1,84 @@
+"""Take-off is decided on the estimate, not on the mission's clock (lockstep flights through the
+byte path): a vehicle that cannot lift, or whose MoCap is frozen at the ground, aborts the
+take-off within ``liftoff_timeout_s`` and disarms with the reason; a normal take-off reaches
+MISSION only at the take-off height; a props-off bench session spins the motors and disarms."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from flight_support import fly, short_session
+
+from groundstation.flight import FlightState
+from groundstation.loop import TAKEOFF_TOLERANCE_M
+from groundstation.record import read_record
+from groundstation.session import PROPS_OFF_SPIN_S, FlightSession
+
+TICK_S = 0.002
+LIFTOFF_TIMEOUT_S = 5.0  # the session default (safety.liftoff_timeout_s)
+
+
+def _transition(out: object, to: FlightState) -> object:
+    return next(tr for tr in out.result.transitions if tr.to_state is to)  # type: ignore[attr-defined]
+
+
+def test_that_rotors_without_thrust_abort_the_takeoff_and_disarm(tmp_path: Path) -> None:
+    out = fly(tmp_path, faults="rotor-thrust@0:0")
+    states = [tr.to_state for tr in out.result.transitions]
+    assert states == [FlightState.ARMED, FlightState.TAKEOFF, FlightState.DISARMED]
+    takeoff = _transition(out, FlightState.TAKEOFF)
+    abort = _transition(out, FlightState.DISARMED)
+    assert abort.reason == (f"no lift-off within {LIFTOFF_TIMEOUT_S:g} s at the take-off "  # type: ignore[attr-defined]
+                            "thrust: take-off aborted")
+    assert abs(abort.t_s - takeoff.t_s - LIFTOFF_TIMEOUT_S) <= TICK_S + 1e-9  # type: ignore[attr-defined]
+    assert out.result.end_reason.startswith("no lift-off")
+    rows = read_record(out.record_path).rows
+    assert abs(rows["pos_w_m"][-1][2] - 0.1) < 0.01  # never left the ground
+    assert max(rows["spin_hz"][-1]) == 0.0  # the motors were stopped
+
+
+def test_that_mocap_frozen_at_the_ground_aborts_the_takeoff(tmp_path: Path) -> None:
+    # the IMU feels the climb, the frozen MoCap says ground: the UKF refuses the poses, then
+    # re-seeds on them, again and again; the take-off must not go on on such a position
+    out = fly(tmp_path, faults="mocap-freeze@0")
+    states = [tr.to_state for tr in out.result.transitions]
+    assert states == [FlightState.ARMED, FlightState.TAKEOFF, FlightState.DISARMED]
+    takeoff = _transition(out, FlightState.TAKEOFF)
+    abort = _transition(out, FlightState.DISARMED)
+    assert abort.reason.endswith(": take-off aborted")  # type: ignore[attr-defined]
+    assert "MoCap and IMU disagree" in abort.reason  # type: ignore[attr-defined]
+    # three re-seeds within 1 s (groundstation.loop.RESEEDS_INCONSISTENT): caught early in
+    # the climb (without the check the vehicle climbed to 6.5 m on a ground-level estimate)
+    assert abort.t_s - takeoff.t_s <= 1.5  # type: ignore[attr-defined]
+    rows = read_record(out.record_path).rows
+    assert rows["pos_w_m"][:, 2].max() < 0.8  # caught low: at most a 0.7 m drop
+
+
+def test_that_a_normal_takeoff_enters_the_mission_at_the_takeoff_height(tmp_path: Path) -> None:
+    out = fly(tmp_path)
+    states = [tr.to_state for tr in out.result.transitions]
+    assert states == [FlightState.ARMED, FlightState.TAKEOFF, FlightState.MISSION,
+                      FlightState.LANDING, FlightState.DISARMED]
+    mission = _transition(out, FlightState.MISSION)
+    takeoff = _transition(out, FlightState.TAKEOFF)
+    # not before the planned take-off (2.5 s) and its hold (1 s) are over
+    assert mission.t_s - takeoff.t_s >= 3.5 - 1e-9  # type: ignore[attr-defined]
+    rows = read_record(out.record_path).rows
+    k = round(mission.t_s / TICK_S)  # type: ignore[attr-defined]
+    assert abs(rows["est_pos_w_m"][k][2] - 0.8) < TAKEOFF_TOLERANCE_M  # height_m, world z
+
+
+def test_that_a_props_off_bench_session_spins_the_motors_and_never_takes_off(
+        tmp_path: Path) -> None:
+    cfg, params, mission = short_session(tmp_path)
+    out = FlightSession(cfg, params, mission, record_path=tmp_path / "bench.fhr",
+                        echo_events=False, dashboard="off", props_off=True).run()
+    states = [tr.to_state for tr in out.result.transitions]
+    assert states == [FlightState.ARMED, FlightState.DISARMED]
+    armed, done = out.result.transitions
+    assert done.reason == (f"props-off bench test complete: every motor spun at idle for "
+                           f"{PROPS_OFF_SPIN_S:g} s")
+    assert abs(done.t_s - armed.t_s - (1.0 + PROPS_OFF_SPIN_S)) <= TICK_S + 1e-9
+    rows = read_record(out.record_path).rows
+    assert abs(rows["pos_w_m"][:, 2].max() - 0.1) < 0.01  # it stayed on the ground
+    assert rows["spin_hz"][:, 0].max() == params.rotors.min_spin_hz  # idle, never more
