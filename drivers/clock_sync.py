@@ -18,7 +18,9 @@ delay itself is not observable from one-way stamps (a configured constant adds i
 
 A remote clock that steps (a board that restarted its counter, a server whose clock was set)
 is re-learnt: a residual below the envelope by more than ``step_s`` at once, or above it for
-``step_confirm`` samples in a row; the rate learnt so far is kept (the crystal did not change).
+``step_confirm`` samples in a row spanning ``step_confirm_s`` of remote time (a host that
+stalled for 100 ms delivers a burst of late samples, which is not a step); the rate learnt so
+far is kept (the crystal did not change).
 
 O(1) per sample with no allocation except the block fit (once per block, ``blocks`` points).
 Pure: no clock of its own, no threads; the caller owns locking.
@@ -35,13 +37,14 @@ class ClockSync:
     """Host-clock estimate of a remote clock, from (remote ns, arrival ns) pairs."""
 
     __slots__ = (
-        "_above", "_blk_d", "_blk_end", "_blk_len", "_blk_r", "_block_ns", "_leak",
+        "_above", "_above_since", "_blk_d", "_blk_end", "_blk_len", "_blk_r", "_block_ns", "_leak",
         "_n_pts", "_o", "_pt_d", "_pt_i", "_pt_r", "_ref_r", "_s", "_step_confirm",
-        "_step_ns", "last_remote_ns", "samples", "steps",
+        "_step_confirm_ns", "_step_ns", "last_remote_ns", "samples", "steps",
     )
 
     def __init__(self, *, block_s: float = 0.5, blocks: int = 32, leak_ppm: float = 50.0,
-                 step_s: float = 0.05, step_confirm: int = 16) -> None:
+                 step_s: float = 0.05, step_confirm: int = 16,
+                 step_confirm_s: float = 0.5) -> None:
         if not (block_s > 0.0 and blocks >= 2 and leak_ppm >= 0.0 and step_s > 0.0
                 and step_confirm >= 1):
             raise ValueError("ClockSync: block_s > 0, blocks >= 2, leak_ppm >= 0, step_s > 0, "
@@ -50,6 +53,8 @@ class ClockSync:
         self._leak = leak_ppm * 1e-6
         self._step_ns = step_s * 1e9
         self._step_confirm = step_confirm
+        self._step_confirm_ns = round(step_confirm_s * 1e9)
+        self._above_since = 0
         self._pt_r = [0] * blocks  # remote time of each block minimum (ring)
         self._pt_d = [0] * blocks  # arrival - remote at that minimum
         self._pt_i = 0
@@ -85,8 +90,11 @@ class ClockSync:
             return arrival_ns
         if e > o + self._step_ns:
             # a delay spike, or the remote clock stepped back: held until it persists
+            if self._above == 0:
+                self._above_since = remote_ns
             self._above += 1
-            if self._above >= self._step_confirm:
+            if (self._above >= self._step_confirm
+                    and remote_ns - self._above_since >= self._step_confirm_ns):
                 self.steps += 1
                 self._restart(remote_ns, d)
                 return arrival_ns

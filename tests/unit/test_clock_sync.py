@@ -112,3 +112,19 @@ def test_invalid_settings() -> None:
     with pytest.raises(ValueError):
         ClockSync(blocks=1)
 
+
+
+def test_a_host_stall_is_not_a_step() -> None:
+    """The reader thread descheduled for 150 ms: 75 samples arrive late, in one burst."""
+    cs = ClockSync()
+    _run(cs, 500 * 10, rate=1.0, offset_ns=0)
+    stall_end = None
+    for k in range(500 * 10, 500 * 10 + 75):
+        remote = k * PERIOD_NS
+        stall_end = stall_end or remote + 150_000_000
+        mapped = cs.update(remote, stall_end)
+        assert mapped <= stall_end
+        assert abs(mapped - remote - MIN_DELAY_NS) < 300_000  # still on the envelope
+    assert cs.steps == 0
+    _, last, late = _run(cs, 500, rate=1.0, offset_ns=0, start=500 * 10 + 75)
+    assert late == 0 and cs.steps == 0 and abs(last) < 300_000

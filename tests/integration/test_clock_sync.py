@@ -1,0 +1,112 @@
+"""One time base, end to end on real ptys and UDP sockets, in real time: an emulated board
+whose sample clock runs 1.2 % slow (494 Hz for a set 500 Hz) and a NatNet server whose clock
+is 3 s ahead of ours, read by the real drivers for a minute.
+
+Asserted on what the drivers compute, against what the emulators know (no wall-clock timing
+asserts): no sample is stamped later than its arrival (no negative age), the measured board
+rate and drift, the server's offset, and every sample time and MoCap latency within 1 ms of
+the emulators' truth once the clock sync has its first rate (after 2 s of samples). The
+minute is ``FASTHEX_CLOCK_SYNC_S`` (default 60).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+import time
+
+import pytest
+
+from drivers.mikrokopter import FlightCtrl
+from drivers.mocap.natnet_client import NatNetClient, NatNetConfig
+from sim_backend.emulators.flightctrl import EmulatedFlightCtrl, FlightCtrlEmulatorConfig
+from sim_backend.emulators.natnet import NatNetEmulatorConfig, NatNetServer
+from sim_backend.vehicle import BenchVehicle
+
+BOARD_PPM = -12_000.0  # the board's crystal 1.2 % slow
+MOCAP_OFFSET_S = 3.0
+MOCAP_LATENCY_S = 0.004  # mid-exposure -> transmit, as the server stamps it
+RUN_S = float(os.environ.get("FASTHEX_CLOCK_SYNC_S", "60"))
+SETTLE_S = 2.0
+
+
+def test_slow_board_and_offset_mocap_server_over_a_minute() -> None:
+    vehicle = BenchVehicle(seed=3)
+    emu = EmulatedFlightCtrl(vehicle, lock=threading.Lock(), config=FlightCtrlEmulatorConfig(
+        record_truth=True, board_clock_error_ppm=BOARD_PPM))
+    server = NatNetServer(vehicle, NatNetEmulatorConfig(
+        command_port=0, latency_s=MOCAP_LATENCY_S, server_clock_offset_s=MOCAP_OFFSET_S),
+        lock=threading.Lock())
+    emu.start()
+    server.start(realtime=True)
+    fc = FlightCtrl.open(f"pty://{emu.path}")
+    client = NatNetClient(NatNetConfig(command_port=server.command_port))
+    imu_seen = imu_checked = poses_checked = 0
+    worst_imu_err_ns = worst_lat_err_ns = 0
+    negative_ages = 0
+    try:
+        fc.connect()
+        client.start()
+        first_ns: int | None = None
+        last_frame = -1
+        while True:
+            s = fc.wait_next(1.0)
+            assert s is not None, "the IMU stream stopped"
+            now_ns = time.monotonic_ns()
+            imu_seen += 1
+            negative_ages += s.t_ns > s.arrival_t_ns or s.t_ns > now_ns
+            first_ns = first_ns or s.arrival_t_ns
+            settled = s.arrival_t_ns - first_ns > SETTLE_S * 1e9
+            if settled and imu_seen % 50 == 0:
+                # the emulator's own record of when it sent the sample (its clock -> ours)
+                # (seq counts every sample the board sent, as the driver's unwrapped counter)
+                truth = emu.sent_imu[s.seq] if s.seq < len(emu.sent_imu) else None
+                if truth is not None and truth.seq == s.seq:
+                    err = s.t_ns - _emu_host_ns(emu, truth.t_ns)
+                    worst_imu_err_ns = max(worst_imu_err_ns, abs(err))
+                    imu_checked += 1
+            with client._cond:  # the newest frame and its times, as the client saw them
+                frame, times = client._last_frame, client._last_frame_times
+            if frame is not None and frame.frame_number != last_frame:
+                last_frame = frame.frame_number
+                rx_ns, t_ns, latency_s = times
+                negative_ages += t_ns > rx_ns
+                if settled:
+                    # the server's timestamp field is its capture time on the emulator's
+                    # clock (the 3 s offset is in the high-resolution stamps only)
+                    true_capture_ns = round((server._t0_wall + frame.timestamp_s) * 1e9)
+                    true_latency_ns = rx_ns - true_capture_ns
+                    worst_lat_err_ns = max(worst_lat_err_ns,
+                                           abs(round(latency_s * 1e9) - true_latency_ns))
+                    poses_checked += 1
+            if s.arrival_t_ns - first_ns > RUN_S * 1e9:
+                break
+        stats = fc.link_stats()
+        mstats = client.stats()
+    finally:
+        fc.close()
+        client.close()
+        server.close()
+        emu.stop()
+    clk = stats.imu_clock
+    print(f"board: {clk.rate_hz:.2f} Hz, offset {clk.offset_s:+.6f} s, drift "
+          f"{clk.drift_ppm:+.1f} ppm; IMU time error max {worst_imu_err_ns / 1e3:.0f} us over "
+          f"{imu_checked} checks; MoCap offset {mstats.clock_offset_s:+.6f} s, drift "
+          f"{mstats.clock_drift_ppm:+.2f} ppm, latency error max {worst_lat_err_ns / 1e3:.0f} "
+          f"us over {poses_checked} frames")
+    assert negative_ages == 0
+    assert clk.known
+    assert clk.drift_ppm == pytest.approx(BOARD_PPM, abs=20.0)
+    assert clk.rate_hz == pytest.approx(500.0 * (1 + BOARD_PPM * 1e-6), abs=0.05)
+    assert imu_checked > RUN_S * 5 and worst_imu_err_ns < 1_000_000
+    # the server's clock: 3 s ahead of the emulator's, which started with the test
+    assert mstats.clock_offset_s == pytest.approx(server._t0_wall - MOCAP_OFFSET_S, abs=0.005)
+    assert math.isfinite(mstats.clock_drift_ppm) and abs(mstats.clock_drift_ppm) < 20.0
+    assert poses_checked > RUN_S * 50 and worst_lat_err_ns < 1_000_000
+
+
+def _emu_host_ns(emu: EmulatedFlightCtrl, sim_ns: int) -> int:
+    """Host (monotonic) time of the realtime emulator's simulated instant."""
+    return round(emu._wall0 * 1e9) + sim_ns - emu._sim0_ns
+
