@@ -50,9 +50,11 @@ from sim_backend.emulators.vrpn import VrpnServer
 from sim_backend.vehicle import BenchVehicle
 
 STALL_S = 0.5
-"""One input that keeps the emulator busy for longer than this counts as a stall (out of
-range). Measured as the CPU time of the feeding thread: the emulator's own work, whatever else
-the machine runs (wall time on a shared machine would measure the neighbours)."""
+"""An emulator busy for longer than this per received frame counts as a stall (out of range).
+Measured as the CPU time of the feeding thread: the emulator's own work, whatever else the
+machine runs (wall time on a shared machine would measure the neighbours). Per frame, because
+a lockstep ``w`` legitimately simulates one IMU period (up to 1 s: about 0.15 s of work with
+every stream at its fastest) and one input may carry a dozen of them."""
 
 Check = Callable[[bytes], int]
 
@@ -240,11 +242,13 @@ def flightctrl_emulator(firmware: str = "tk3") -> Target:
 
     def run(data: bytes) -> int:
         t0 = time.thread_time()
+        frames0 = emu.stats().frames_received
         a, b = _split(data)
         emu.feed(a)
         emu.feed(b)
         drain.drain()
-        bad = 0 if time.thread_time() - t0 <= STALL_S else 1
+        frames = max(1, emu.stats().frames_received - frames0)
+        bad = 0 if time.thread_time() - t0 <= STALL_S * frames else 1
         for key, period_us in emu.stream_periods_us().items():
             shortest = mkm.MIN_MOTOR_PERIOD_US if key == "M" else mkm.MIN_STREAM_PERIOD_US
             if key in "IMBC" and not shortest <= period_us <= mkm.MAX_STREAM_PERIOD_US:
