@@ -38,7 +38,7 @@ class ClockSync:
 
     __slots__ = (
         "_above", "_above_since", "_blk_d", "_blk_end", "_blk_len", "_blk_r", "_block_ns", "_leak",
-        "_n_pts", "_o", "_pt_d", "_pt_i", "_pt_r", "_ref_r", "_s", "_step_confirm",
+        "_n_pts", "_o", "_pt_d", "_pt_i", "_pt_r", "_ref_r", "_s", "_s_sigma", "_step_confirm",
         "_step_confirm_ns", "_step_ns", "last_remote_ns", "samples", "steps",
     )
 
@@ -60,6 +60,7 @@ class ClockSync:
         self._pt_i = 0
         self._n_pts = 0
         self._s = 0.0  # host ns per remote ns, minus 1
+        self._s_sigma = math.inf  # standard error of _s from the fit's residuals
         self._ref_r = 0  # remote time the line is referred to
         self._o = 0.0  # envelope offset: host - remote - s * (remote - ref) (ns)
         self._above = 0
@@ -135,6 +136,13 @@ class ClockSync:
         return self.map(r) - r
 
     @property
+    def drift_sigma_ppm(self) -> float:
+        """Standard error of :attr:`drift_ppm` from the scatter of the block minima about the
+        fitted line (inf until three blocks): early on it is the transport's jitter over a
+        short baseline, and it shrinks as the baseline grows."""
+        return self._s_sigma * 1e6
+
+    @property
     def rate_known(self) -> bool:
         """True once at least two blocks have given the rate."""
         return self._n_pts >= 2
@@ -145,6 +153,7 @@ class ClockSync:
         self._ref_r = remote_ns
         self._o = float(d)
         self._above = 0
+        self._s_sigma = math.inf
         self._n_pts = 0
         self._pt_i = 0
         self.last_remote_ns = remote_ns
@@ -182,6 +191,14 @@ class ClockSync:
         s_new = (n * srd - sr * sd) / den
         if not math.isfinite(s_new) or abs(s_new) > 0.1:
             return
+        if n > 2:
+            c = (sd - s_new * sr) / n
+            sse = 0.0
+            for k in range(n):
+                j = (start + k) % size
+                res = (self._pt_d[j] - d0) - c - s_new * (self._pt_r[j] - r0)
+                sse += res * res
+            self._s_sigma = math.sqrt(sse / (n - 2) / (srr - sr * sr / n))
         # re-refer the line to now, on the lowest block minimum under the new slope (the
         # running minimum then only has to follow what changed within one block)
         o = math.inf

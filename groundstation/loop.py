@@ -132,6 +132,11 @@ class LoopOptions:
     scripted_requests: tuple[tuple[float, str], ...] = ()
 
 
+def _ppm_error(sigma_ppm: float) -> str:
+    """A clock drift's error bar (the clock sync has none from its first two blocks)."""
+    return f"+- {sigma_ppm:.0f} ppm" if math.isfinite(sigma_ppm) else "ppm (first estimate)"
+
+
 class FlightLoop:
     """Runs one flight session's ticks from the first IMU sample to the end."""
 
@@ -560,7 +565,7 @@ class FlightLoop:
             clk = stats.imu_clock  # the board's sample clock against ours (clock sync)
             if clk.known:
                 imu_value += (f"; board clock {clk.rate_hz:.1f} Hz, offset {clk.offset_s:+.3f} s,"
-                              f" drift {clk.drift_ppm:+.0f} ppm")
+                              f" drift {clk.drift_ppm:+.0f} {_ppm_error(clk.drift_sigma_ppm)}")
         checks = [
             ("flight-ctrl streaming IMU >= 80 % of the set rate", imu_ok, imu_value),
             ("servo answers, multi-turn, at the commanded angle",
@@ -573,7 +578,8 @@ class FlightLoop:
              t_s - last_pose_t_s < 0.1 and (mstats.rate_hz >= 80.0 or self.opts.lockstep),
              f"{mstats.rate_hz:.0f} Hz, newest pose {1e3 * (t_s - last_pose_t_s):.0f} ms old"
              + (f"; server clock offset {mstats.clock_offset_s:+.3f} s, drift "
-                f"{mstats.clock_drift_ppm:+.1f} ppm" if math.isfinite(mstats.clock_drift_ppm)
+                f"{mstats.clock_drift_ppm:+.0f} {_ppm_error(mstats.clock_drift_sigma_ppm)}"
+                if math.isfinite(mstats.clock_drift_ppm)
                 else "")),
             ("estimator converged", initialized and self.ukf.health().ok,
              f"flags {self.ukf.health().flags!r}"),

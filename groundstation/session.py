@@ -110,6 +110,8 @@ class EmulatorProcess:
                 *(repr(float(x)) for x in start_pos_w_m)]
         for fault in cfg.faults:
             args += ["--fault", fault]
+        args += ["--board-clock-ppm", repr(cfg.board_clock_ppm), "--mocap-clock-offset-s",
+                 repr(cfg.mocap_clock_offset_s), "--mocap-clock-ppm", repr(cfg.mocap_clock_ppm)]
         if truth_path is not None:
             args += ["--truth", str(truth_path)]
         args += ["--realtime-settings", "on" if realtime_settings else "off"]

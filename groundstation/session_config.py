@@ -67,6 +67,14 @@ class EmulatedBackend:
                                    "mocap-freeze")
     corrupt_prob: float = spec(0.0, ge=0.0, le=0.1,
                                doc="byte corruption probability on the Flight-Ctrl link")
+    # clock errors to rehearse the time base on (realtime; lockstep: see the emulator)
+    board_clock_ppm: float = spec(0.0, ge=-50_000.0, le=50_000.0,
+                                  doc="rate error of the board's sample clock (-12000: 1.2 % "
+                                  "slow)")
+    mocap_clock_offset_s: float = spec(0.0, ge=0.0, le=1e6,
+                                       doc="the MoCap server's clock minus the emulator's")
+    mocap_clock_ppm: float = spec(0.0, ge=-50_000.0, le=50_000.0,
+                                  doc="rate error of the MoCap server's clock")
 
     def __post_init__(self) -> None:
         from sim_backend.backend import ScheduledFault

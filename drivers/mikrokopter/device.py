@@ -233,6 +233,8 @@ class ImuClock:
     drift_ppm: float
     """Rate error of the board's clock (negative: slow); 0 until learnt (``known``)."""
     known: bool = False
+    drift_sigma_ppm: float = math.inf
+    """Standard error of ``drift_ppm`` (large in the first seconds, then a few ppm)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -417,7 +419,7 @@ class _ImuTimeBase:
         if not sync.samples:
             return ImuClock(math.nan, math.nan, 0.0)
         return ImuClock(1e9 / (self.period_ns * sync.rate_ratio), sync.offset_ns * 1e-9,
-                        sync.drift_ppm, sync.rate_known)
+                        sync.drift_ppm, sync.rate_known, sync.drift_sigma_ppm)
 
 
 # ------------------------------------------------------------------------------------ device

@@ -402,7 +402,8 @@ class NatNetClient(FrameWaits):
             t_ns = min(sync.map(frame.camera_mid_exposure_ticks * 1_000_000_000 // clock_hz),
                        rx_t_ns) - delay_ns
             self.monitor.set_server_clock(sync.offset_ns * 1e-9, sync.drift_ppm
-                                          if sync.rate_known else math.nan)
+                                          if sync.rate_known else math.nan,
+                                          sync.drift_sigma_ppm)
         else:
             t_ns = rx_t_ns - round(latency_s * 1e9) - delay_ns
         latency_s = (rx_t_ns - t_ns) * 1e-9

@@ -109,6 +109,7 @@ class MocapStats:
     implausible_samples: int = 0  # poses or frames outside PoseLimits, dropped
     clock_offset_s: float = math.nan  # server clock -> host clock (host - server); NaN if none
     clock_drift_ppm: float = math.nan  # rate error of the server's clock; NaN until learnt
+    clock_drift_sigma_ppm: float = math.inf  # standard error of clock_drift_ppm
 
 
 @runtime_checkable
@@ -157,11 +158,12 @@ class StreamMonitor:
         self.implausible_samples = 0
         self._last_valid_t_ns: int | None = None
         self._latency_s = math.nan
-        self._clock_est = (math.nan, math.nan)
+        self._clock_est = (math.nan, math.nan, math.inf)
 
-    def set_server_clock(self, offset_s: float, drift_ppm: float) -> None:
-        """The server clock as the client's clock sync sees it (offset, drift)."""
-        self._clock_est = (offset_s, drift_ppm)
+    def set_server_clock(self, offset_s: float, drift_ppm: float,
+                         drift_sigma_ppm: float = math.inf) -> None:
+        """The server clock as the client's clock sync sees it (offset, drift, its error)."""
+        self._clock_est = (offset_s, drift_ppm, drift_sigma_ppm)
 
     def count_malformed(self) -> None:
         with self._lock:

@@ -244,7 +244,8 @@ class VrpnClient(FrameWaits):
             sync = self.server_clock
             t_ns = sync.update(server_t_ns, rx) - round(self.config.latency_s * 1e9)
             self.monitor.set_server_clock(sync.offset_ns * 1e-9, sync.drift_ppm
-                                          if sync.rate_known else math.nan)
+                                          if sync.rate_known else math.nan,
+                                          sync.drift_sigma_ppm)
         lat = (rx - t_ns) * 1e-9
         limits = self.config.limits
         status = TrackingStatus.OK

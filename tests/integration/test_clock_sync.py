@@ -13,13 +13,20 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import threading
 import time
+from pathlib import Path
 
 import pytest
+from flight_support import SHORT_MISSION
 
+from controller.missions import Mission
 from drivers.mikrokopter import FlightCtrl
 from drivers.mocap.natnet_client import NatNetClient, NatNetConfig
+from groundstation.configs import load_mission, load_vehicle
+from groundstation.session import FlightSession
+from groundstation.session_config import load_session
 from sim_backend.emulators.flightctrl import EmulatedFlightCtrl, FlightCtrlEmulatorConfig
 from sim_backend.emulators.natnet import NatNetEmulatorConfig, NatNetServer
 from sim_backend.vehicle import BenchVehicle
@@ -110,3 +117,57 @@ def _emu_host_ns(emu: EmulatedFlightCtrl, sim_ns: int) -> int:
     """Host (monotonic) time of the realtime emulator's simulated instant."""
     return round(emu._wall0 * 1e9) + sim_ns - emu._sim0_ns
 
+
+
+SESSION = """\
+schema: fasthex.session
+version: 1
+name: clock-errors
+vehicle: fasthex
+mission: short-hover.yaml
+backend:
+  kind: emulated
+  clock: realtime
+  seed: 3
+  board_clock_ppm: -12000
+  mocap_clock_offset_s: 3.0
+safety:
+  geofence_min_m: [-2.0, -2.0, -0.5]
+  geofence_max_m: [2.0, 2.0, 2.5]
+  mocap_timeout_s: 1.0
+  imu_timeout_s: 0.5
+telemetry:
+  rerun: "off"
+"""
+
+
+def test_the_preflight_reports_the_board_and_mocap_clocks(tmp_path: Path) -> None:
+    """A session on the emulated backend in real time, with the two clock errors as session
+    keys: the preflight's IMU and MoCap lines carry the measured rate, offset and drift."""
+    (tmp_path / "short-hover.yaml").write_text(SHORT_MISSION)
+    (tmp_path / "clock.yaml").write_text(SESSION)
+    session = FlightSession(load_session(tmp_path / "clock.yaml"), load_vehicle("fasthex"),
+                            Mission(load_mission(tmp_path / "short-hover.yaml")),
+                            record_path=tmp_path / "clock.fhr", echo_events=False)
+    outcome = session.run()
+    checks = {name: (ok, value) for name, ok, value in outcome.preflight}
+    imu_ok, imu = checks["flight-ctrl streaming IMU >= 80 % of the set rate"]
+    mocap_ok, mocap = checks["MoCap sees the body at >= 80 % of its rate"]
+    print(imu, "|", mocap)
+    assert imu_ok and mocap_ok
+    board = re.search(r"board clock ([0-9.]+) Hz, offset ([-+0-9.]+) s, drift ([-+0-9]+) "
+                      r"(?:\+- ([0-9]+) ppm|ppm \(first estimate\))", imu)
+    assert board is not None, imu
+    assert float(board.group(1)) == pytest.approx(494.0, abs=0.3)
+    # 1 s of preflight: the rate from the first blocks, within 0.1 % (the minute test: 20 ppm)
+    assert float(board.group(3)) == pytest.approx(BOARD_PPM, abs=1000.0)
+    server = re.search(r"server clock offset ([-+0-9.]+) s, drift ([-+0-9]+) "
+                       r"(?:\+- ([0-9]+) ppm|ppm \(first estimate\))", mocap)
+    assert server is not None, mocap
+    # the server's clock has no rate error: the early estimate is within its own error bar
+    if server.group(3) is not None:
+        assert abs(float(server.group(2))) <= 3 * float(server.group(3)) + 50.0
+    if board.group(4) is not None:
+        assert abs(float(board.group(3)) - BOARD_PPM) <= 3 * float(board.group(4)) + 50.0
+    age = re.search(r"newest pose (-?[0-9]+) ms old", mocap)
+    assert age is not None and int(age.group(1)) >= 0
