@@ -21,8 +21,9 @@ VRPN carries no frame number, no latency and no validity flag. Hence:
   report is older than ``stale_after_s``: the stale pose is never returned as current.
 
 A report with an all-zero quaternion is a body the server lost (``INVALID``); any other report
-that is non-finite, farther than ``limits.max_range_m`` (100 m) from the world origin
-or has a quaternion far from unit norm is dropped and counted
+whose stamp gives a latency outside 0..1 s, or that is non-finite, farther than
+``limits.max_range_m`` (100 m) from the world origin or has a quaternion far from unit norm is
+dropped and counted
 (``stats().implausible_samples``; :class:`~drivers.mocap.pose.PoseLimits`), never handed out.
 :meth:`VrpnClient.feed_stream` runs the receive path on bytes in process (fuzzing, replay).
 
@@ -248,6 +249,11 @@ class VrpnClient(FrameWaits):
                                           sync.drift_sigma_ppm)
         lat = (rx - t_ns) * 1e-9
         limits = self.config.limits
+        if not limits.latency_ok(lat):
+            # A report stamp that puts the capture more than a second before its arrival (or
+            # after it) is a broken stamp: so would be the sample time.
+            self.monitor.count_implausible()
+            return
         status = TrackingStatus.OK
         pos, q = NAN3, NAN4
         if report.q_xyzw == (0.0, 0.0, 0.0, 0.0):
