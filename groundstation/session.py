@@ -282,6 +282,13 @@ class FlightSession:
         tel: mp.process.BaseProcess | None = None
         ring: TelemetryRing | None = None
         ctx = mp.get_context("spawn")
+        # multiprocessing's resource tracker (it unlinks the shared memory and semaphores below)
+        # is a child of ours too: started with the stop signals blocked it keeps them blocked,
+        # so a SIGHUP to the group cannot kill it half-way through the session
+        from multiprocessing import resource_tracker
+
+        with stop_signals_blocked():
+            resource_tracker.ensure_running()
         stop = ctx.Event()
         events: Any = ctx.Queue(maxsize=10_000)
         status: Any = ctx.Array("d", 3, lock=False)
@@ -320,10 +327,10 @@ class FlightSession:
                 max_tilt_deg=tilt.max_tilt_deg, max_tilt_rate_deg_s=tilt.max_rate_deg_s,
                 rate_hz=50.0, serve="on_request" if lockstep else "periodic",
                 # in lockstep the tilt planner's ramp is the rate limit (sim time), and the
-                # SDK's reply timeout (wall clock) is long: on a loaded host a late reply must
+                # SDK's reply timeout (wall clock, 2 x 250 + 2 ms) is long: a late reply must
                 # not become a servo fault that changes the flight (determinism for a seed)
                 rate_limit_goal=not lockstep,
-                sdk_latency_timer_ms=100.0 if lockstep else 16.0))
+                sdk_latency_timer_ms=250.0 if lockstep else 16.0))
             with stop_signals_blocked():  # its process must not die of a stray Ctrl-C
                 _open_device("servo", servo_uri, servo.start)
             if lockstep:

@@ -75,14 +75,18 @@ def one_flight(workdir: Path, sig: int, at_s: float) -> str:
     if _processes_mentioning(str(tmp)) or list(tmp.iterdir()):
         return "LEFTOVERS"
     if not record.exists():
-        return "stopped during start-up (no record: nothing flown)" if "nothing was armed" \
-            in err else f"NO RECORD (exit {proc.returncode}): {err.strip()[-200:]}"
+        if "nothing was armed" in err or "interrupted" in err:
+            return "stopped during start-up (no record: nothing flown)"
+        if proc.returncode == -sig and not err.strip():
+            # the signal's default action: it came before `fly` had opened anything
+            return "killed before the session started (nothing opened)"
+        return f"NO RECORD (exit {proc.returncode}): {err.strip()[-200:]}"
     try:
         read_record(record)
     except (OSError, ValueError) as exc:
         return f"UNREADABLE RECORD: {exc}"
-    if "stop before arming" in text:
-        return "stopped before arming"
+    if "stop before arming" in text or "land before takeoff" in text:
+        return "stopped before take-off"
     if "LANDING -> DISARMED: touchdown" in text and "operator stop: landing" in text:
         return "landed on the signal"
     if "LANDING -> DISARMED: touchdown" in text:

@@ -513,8 +513,19 @@ def read_servo(uri: str, latency_timer_ms: float = 16.0,
         led_on=bool(torque[1]))
 
 
+#: bench identification: attempts at the first PING (a loaded host or a servo that was just
+#: powered may miss one reply; the SDK's own wait is only ~34 ms)
+IDENTIFY_ATTEMPTS = 3
+
+
 def _identify(link: _Link) -> ServoIdentity:
-    model, _ = link.ping()
+    for attempt in range(IDENTIFY_ATTEMPTS):
+        try:
+            model, _ = link.ping()
+            break
+        except ServoCommError:
+            if attempt == IDENTIFY_ATTEMPTS - 1:
+                raise
     firmware = link.read(Reg.FIRMWARE_VERSION, 1)[0][0]
     eeprom, _ = link.read(Reg.RETURN_DELAY_TIME, 5)
     srl = link.read(Reg.STATUS_RETURN_LEVEL, 1)[0][0]
