@@ -26,6 +26,7 @@ import numpy as np
 import numpy.typing as npt
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
+from . import compiled
 from .quaternion import left_matrix, quat_exp, quat_log, quat_to_rot
 
 FloatArray = npt.NDArray[np.float64]
@@ -87,8 +88,10 @@ class Kernel(Protocol):
     """One predict or one (not yet accepted) update of the error-state UKF."""
 
     def predict(self, x: FloatArray, P: FloatArray, Q: FloatArray, dt: float,
-                gyro_rad_s: FloatArray, accel_m_s2: FloatArray, left_ref: FloatArray,
-                left_next_ref_inv: FloatArray) -> tuple[FloatArray, FloatArray]: ...
+                gyro_rad_s: FloatArray, accel_m_s2: FloatArray, q_ref: FloatArray,
+                q_next_ref_inv: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """``q_ref`` and ``q_next_ref_inv`` (= q_ref'^-1) are shared by every sigma point."""
+        ...
 
     def update(self, x: FloatArray, P: FloatArray, z: FloatArray, R: FloatArray
                ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
@@ -97,7 +100,7 @@ class Kernel(Protocol):
 
 
 class FastKernel:
-    """All sigma points as one array; filterpy's sigma-point parameters and weights."""
+    """All sigma points as one array (numpy); filterpy's sigma-point parameters and weights."""
 
     def __init__(self, n: int, alpha: float, beta: float, kappa: float,
                  gravity_w: FloatArray) -> None:
@@ -120,8 +123,9 @@ class FastKernel:
         return s
 
     def predict(self, x: FloatArray, P: FloatArray, Q: FloatArray, dt: float,
-                gyro_rad_s: FloatArray, accel_m_s2: FloatArray, left_ref: FloatArray,
-                left_next_ref_inv: FloatArray) -> tuple[FloatArray, FloatArray]:
+                gyro_rad_s: FloatArray, accel_m_s2: FloatArray, q_ref: FloatArray,
+                q_next_ref_inv: FloatArray) -> tuple[FloatArray, FloatArray]:
+        left_ref, left_next_ref_inv = left_matrix(q_ref), left_matrix(q_next_ref_inv)
         sig = process_model(self.sigma_points(x, P), dt, gyro_rad_s=gyro_rad_s,
                             accel_m_s2=accel_m_s2, left_ref=left_ref,
                             left_next_ref_inv=left_next_ref_inv, gravity_w=self.gravity_w)
@@ -154,8 +158,9 @@ class FilterpyKernel:
                                          fx=process_model, points=self.points)
 
     def predict(self, x: FloatArray, P: FloatArray, Q: FloatArray, dt: float,
-                gyro_rad_s: FloatArray, accel_m_s2: FloatArray, left_ref: FloatArray,
-                left_next_ref_inv: FloatArray) -> tuple[FloatArray, FloatArray]:
+                gyro_rad_s: FloatArray, accel_m_s2: FloatArray, q_ref: FloatArray,
+                q_next_ref_inv: FloatArray) -> tuple[FloatArray, FloatArray]:
+        left_ref, left_next_ref_inv = left_matrix(q_ref), left_matrix(q_next_ref_inv)
         f = self.ukf
         f.x, f.P, f.Q = x.copy(), P.copy(), Q
         f.predict(dt=dt, gyro_rad_s=gyro_rad_s, accel_m_s2=accel_m_s2, left_ref=left_ref,
@@ -170,3 +175,81 @@ class FilterpyKernel:
         f.sigmas_f = self.points.sigma_points(f.x, f.P)
         f.update(z, R=R)
         return f.x.copy(), f.P.copy(), f.y.copy(), f.S.copy()
+
+
+class CompiledKernel:
+    """The same predict and update as compiled loops (:mod:`estimator.compiled`, numba).
+
+    Compiles (or loads from numba's on-disk cache) when constructed, with one predict and one
+    update on a dummy state, so that no flight tick waits on the JIT.
+    """
+
+    def __init__(self, n: int, alpha: float, beta: float, kappa: float,
+                 gravity_w: FloatArray) -> None:
+        points = make_sigma_points(n, alpha, beta, kappa)
+        self.n = n
+        self.Wm = np.ascontiguousarray(points.Wm, dtype=np.float64)
+        self.Wc = np.ascontiguousarray(points.Wc, dtype=np.float64)
+        self.scale = float(alpha ** 2 * (n + kappa))         # = n + lambda
+        self.gravity_w = np.ascontiguousarray(gravity_w, dtype=np.float64)
+        m = 2 * n + 1
+        self._sig = np.empty((m, n))
+        self._dev = np.empty((m, n))
+        self._work = np.empty((n, n))
+        self._U = np.empty((n, n))
+        self._meas_idx = MEAS_IDX.astype(np.int64)
+        self._q_tmp = np.empty(4)
+        self._warm_up()
+
+    def _warm_up(self) -> None:
+        x, P, q = np.zeros(self.n), np.eye(self.n) * 1e-4, np.array([1.0, 0.0, 0.0, 0.0])
+        Q, R = np.eye(self.n) * 1e-8, np.eye(6) * 1e-6
+        x1, P1 = self.predict(x, P, Q, 0.002, np.zeros(3), -self.gravity_w, q, q)
+        self.update(x1, P1, np.zeros(6), R)
+        out = self.predict_step(x, P, q, Q, 0.002, np.zeros(3), -self.gravity_w, 1e-12, 1.0)
+        if out is not None:
+            self.update_step(out[0], out[1], out[2], np.zeros(6), R, 1e-12, 1.0)
+
+    def predict_step(self, x: FloatArray, P: FloatArray, q_ref: FloatArray, Q: FloatArray,
+                     dt: float, gyro_rad_s: FloatArray, accel_m_s2: FloatArray,
+                     min_variance: float, max_pos_variance: float
+                     ) -> tuple[FloatArray, FloatArray, FloatArray, bool] | None:
+        """``Ukf._propagate`` in one call -> (x, P, q_ref, finite); None if P is not SPD."""
+        n = self.n
+        x_out, P_out, q_out = np.empty(n), np.empty((n, n)), np.empty(4)
+        status = compiled.predict_step(
+            x, P, Q, dt, gyro_rad_s, accel_m_s2, q_ref, self.gravity_w, self.Wm, self.Wc,
+            self.scale, min_variance, max_pos_variance, self._sig, self._work, self._U,
+            self._dev, self._q_tmp, x_out, P_out, q_out)
+        return None if status == 1 else (x_out, P_out, q_out, status == 0)
+
+    def update_step(self, x: FloatArray, P: FloatArray, q_ref: FloatArray, z: FloatArray,
+                    R: FloatArray, min_variance: float, max_pos_variance: float
+                    ) -> tuple[FloatArray, FloatArray, FloatArray, float, bool] | None:
+        """``Ukf._fuse`` before its gate -> (x, P, q_ref, nis, finite); None if P is not SPD."""
+        n = self.n
+        x_out, P_out, q_out = np.empty(n), np.empty((n, n)), np.empty(4)
+        status, nis = compiled.update_step(
+            x, P, q_ref, z, R, self._meas_idx, self.Wm, self.Wc, self.scale, min_variance,
+            max_pos_variance, self._sig, self._work, self._U, x_out, P_out, q_out,
+            np.empty(6), np.empty((6, 6)))
+        return None if status == 1 else (x_out, P_out, q_out, nis, status == 0)
+
+    def predict(self, x: FloatArray, P: FloatArray, Q: FloatArray, dt: float,
+                gyro_rad_s: FloatArray, accel_m_s2: FloatArray, q_ref: FloatArray,
+                q_next_ref_inv: FloatArray) -> tuple[FloatArray, FloatArray]:
+        x_out, P_out = np.empty(self.n), np.empty((self.n, self.n))
+        if not compiled.predict(x, P, Q, dt, gyro_rad_s, accel_m_s2, q_ref, q_next_ref_inv,
+                                self.gravity_w, self.Wm, self.Wc, self.scale, self._sig,
+                                self._work, self._U, self._dev, x_out, P_out):
+            raise np.linalg.LinAlgError("covariance not positive definite")
+        return x_out, P_out
+
+    def update(self, x: FloatArray, P: FloatArray, z: FloatArray, R: FloatArray
+               ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        n = self.n
+        x_out, P_out, y, S = np.empty(n), np.empty((n, n)), np.empty(6), np.empty((6, 6))
+        if not compiled.update(x, P, z, R, self._meas_idx, self.Wm, self.Wc, self.scale,
+                               self._sig, self._work, self._U, x_out, P_out, y, S):
+            raise np.linalg.LinAlgError("covariance not positive definite")
+        return x_out, P_out, y, S

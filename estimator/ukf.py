@@ -55,13 +55,13 @@ from typing import Literal, NamedTuple
 import numpy as np
 import numpy.typing as npt
 
+from . import compiled
 from .config import TWO_SIDED, EstimatorConfig
-from .kernels import FastKernel, FilterpyKernel, Kernel
+from .kernels import CompiledKernel, FastKernel, FilterpyKernel, Kernel
 from .quaternion import (
     QuatTuple,
     Vec3Tuple,
     conj_tuple,
-    left_matrix,
     log_relative_single,
     mul_exp_single,
     mul_exp_tuple,
@@ -235,17 +235,26 @@ class _OutputPredictor:
 class Ukf:
     """Error-state UKF on [p, v, dtheta, b_g, b_a]; see the module docstring.
 
-    ``kernel="fast"`` (default) propagates all sigma points as one array; ``kernel="filterpy"``
+    ``kernel="fast"`` (default) is ``"compiled"`` (numba loops, :mod:`estimator.compiled`) when
+    numba is installed, else ``"numpy"`` (all sigma points as one array); ``kernel="filterpy"``
     runs the same models through stock filterpy, one sigma point at a time (reference/baseline).
+    The compiled kernel compiles in the constructor (start-up), never in a tick.
     """
 
     def __init__(self, cfg: EstimatorConfig | None = None,
-                 kernel: Literal["fast", "filterpy"] = "fast") -> None:
+                 kernel: Literal["fast", "compiled", "numpy", "filterpy"] = "fast") -> None:
         self.cfg = cfg = cfg if cfg is not None else EstimatorConfig()
         self._gravity_w = np.array([0.0, 0.0, -cfg.gravity_m_s2])
-        kernel_cls = FastKernel if kernel == "fast" else FilterpyKernel
-        self._kernel: Kernel = kernel_cls(STATE_DIM, cfg.sigma_alpha, cfg.sigma_beta,
-                                          cfg.sigma_kappa, self._gravity_w)
+        if kernel == "fast":        # compiled when numba is there, else the numpy one
+            kernel = "compiled" if compiled.AVAILABLE else "numpy"
+        self.kernel_name = kernel
+        self._step_kernel: CompiledKernel | None = None     # whole steps in one call
+        args = (STATE_DIM, cfg.sigma_alpha, cfg.sigma_beta, cfg.sigma_kappa, self._gravity_w)
+        self._kernel: Kernel = (CompiledKernel(*args) if kernel == "compiled"
+                                else FastKernel(*args) if kernel == "numpy"
+                                else FilterpyKernel(*args))
+        if isinstance(self._kernel, CompiledKernel):
+            self._step_kernel = self._kernel
         self._R = np.diag([cfg.mocap_pos_sigma_m ** 2] * 3
                           + [math.radians(cfg.mocap_att_sigma_deg) ** 2] * 3)
         self._diag = np.diag_indices(STATE_DIM)
@@ -584,9 +593,20 @@ class Ukf:
                    ) -> tuple[FloatArray, FloatArray, FloatArray]:
         # 1 ns resolution, so that the repeated IMU period hits the cached Q and F
         dt = round(dt, 9)
+        step = self._step_kernel
+        if step is not None:        # the same sequence as below, in one compiled call
+            Q = self._process_noise(dt)
+            cfg = self.cfg
+            cap = cfg.max_pos_sigma_m ** 2
+            out = step.predict_step(x, P, q_ref, Q, dt, gyro, accel, cfg.min_variance, cap)
+            if out is None:
+                out = step.predict_step(x, self._repair_spd(P), q_ref, Q, dt, gyro, accel,
+                                        cfg.min_variance, cap)
+                if out is None:
+                    raise np.linalg.LinAlgError("covariance not positive definite")
+            return out[0], out[1], out[2]
         q_next = mul_exp_single(q_ref, (gyro - x[GYRO_BIAS]) * dt)
-        args = (self._process_noise(dt), dt, gyro, accel, left_matrix(q_ref),
-                left_matrix(quat_conj(q_next)))
+        args = (self._process_noise(dt), dt, gyro, accel, q_ref, quat_conj(q_next))
         try:
             x1, P1 = self._kernel.predict(x, P, *args)
         except np.linalg.LinAlgError:
@@ -598,6 +618,21 @@ class Ukf:
               q_m: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray] | None:
         """Gated update; ``None`` when the gate rejects (inputs are never modified)."""
         z = np.concatenate((pos, log_relative_single(q_ref, q_m)))
+        step = self._step_kernel
+        if step is not None:        # the same sequence as below, in one compiled call
+            cfg = self.cfg
+            cap = cfg.max_pos_sigma_m ** 2
+            res = step.update_step(x, P, q_ref, z, self._R, cfg.min_variance, cap)
+            if res is None:
+                res = step.update_step(x, self._repair_spd(P), q_ref, z, self._R,
+                                       cfg.min_variance, cap)
+                if res is None:
+                    raise np.linalg.LinAlgError("covariance not positive definite")
+            x1, P1, q1, nis, finite = res
+            self._last_nis = nis
+            if not nis <= cfg.gate_nis or not finite:
+                return None
+            return x1, P1, q1
         try:
             x1, P1, y, S = self._kernel.update(x, P, z, self._R)
         except np.linalg.LinAlgError:

@@ -1,16 +1,21 @@
-"""The fast path (all sigma points as one array) against stock filterpy, sigma point by point."""
+"""The fast paths (compiled loops; all sigma points as one numpy array) against stock filterpy,
+sigma point by point."""
 
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Literal
 
 import numpy as np
+import pytest
 
 from estimator import EstimatorConfig, PoseVerdict, Ukf
 from estimator import synthetic as sy
 
 
-def test_that_the_fast_path_gives_the_plain_filterpy_estimates_to_1e_9() -> None:
+@pytest.mark.parametrize("kernel", ["compiled", "numpy"])
+def test_that_the_fast_path_gives_the_plain_filterpy_estimates_to_1e_9(
+        kernel: Literal["compiled", "numpy"]) -> None:
     # Fixture: late poses (replay), a dropout, an outlier (gate), the force observer on
     mocap = sy.MocapModel(pos_sigma_m=5e-4, att_sigma_deg=0.115, latency_min_s=0.005,
                           latency_max_s=0.015, dropouts_s=((0.8, 1.0),),
@@ -18,7 +23,7 @@ def test_that_the_fast_path_gives_the_plain_filterpy_estimates_to_1e_9() -> None
     force = sy.ExternalForce(constant_w_n=(0.3, 0.0, 0.0), ou_sigma_n=0.3)
     sc = sy.make_scenario(sy.lively(), 2.0, sy.PAPER_IMU, mocap, seed=11, force=force)
     cfg = EstimatorConfig()
-    fast, ref = Ukf(cfg, kernel="fast"), Ukf(cfg, kernel="filterpy")
+    fast, ref = Ukf(cfg, kernel=kernel), Ukf(cfg, kernel="filterpy")
     tr = sc.truth
     for est in (fast, ref):
         est.initialize(0.0, tr.pos_w_m[0], tr.q_wb[0], tr.vel_w_m_s[0])
