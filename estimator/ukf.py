@@ -404,12 +404,18 @@ class Ukf:
         """Fuse a MoCap pose captured at ``capture_t_s`` (IMU clock), compensating its age."""
         pos = np.asarray(pos_w_m, dtype=np.float64)
         q_raw = np.asarray(q_wb, dtype=np.float64)
-        norm = math.sqrt(float(q_raw @ q_raw)) if q_raw.shape == (4,) else math.nan
-        if (pos.shape != (3,) or not math.isfinite(float(capture_t_s) + float(pos.sum()) + norm)
-                or abs(norm - 1.0) > 0.1):
+        if pos.shape != (3,) or q_raw.shape != (4,):
             self._poses_invalid += 1
             return PoseVerdict.INVALID
-        q_m = quat_normalize(q_raw)
+        # plain floats: validating and normalising 7 numbers costs more in numpy calls
+        qw, qx, qy, qz = q_raw.tolist()
+        px, py, pz = pos.tolist()
+        norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        if not math.isfinite(float(capture_t_s) + px + py + pz + norm) or abs(norm - 1.0) > 0.1:
+            self._poses_invalid += 1
+            return PoseVerdict.INVALID
+        k = math.copysign(1.0, qw) / norm           # w >= 0, as quat_normalize
+        q_m = np.array((qw * k, qx * k, qy * k, qz * k))
         if not self._initialized:
             self._rest.add_pose(pos, q_m)
             self._try_initialize()
