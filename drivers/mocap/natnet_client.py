@@ -407,6 +407,11 @@ class NatNetClient(FrameWaits):
         else:
             t_ns = rx_t_ns - round(latency_s * 1e9) - delay_ns
         latency_s = (rx_t_ns - t_ns) * 1e-9
+        if not latency_s <= self.config.limits.max_latency_s + self.config.network_delay_s:
+            # The synchronised server clock puts the exposure more than a second back (never
+            # after the arrival, by construction): the stamps of this frame are broken.
+            self.monitor.count_implausible()
+            return
         bid = self._body_id
         main = None
         if bid is not None:
