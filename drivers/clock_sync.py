@@ -18,9 +18,10 @@ delay itself is not observable from one-way stamps (a configured constant adds i
 
 A remote clock that steps (a board that restarted its counter, a server whose clock was set)
 is re-learnt: a residual below the envelope by more than ``step_s`` at once, or above it for
-``step_confirm`` samples in a row spanning ``step_confirm_s`` of remote time (a host that
-stalled for 100 ms delivers a burst of late samples, which is not a step); the rate learnt so
-far is kept (the crystal did not change).
+``step_confirm`` samples in a row spanning ``step_confirm_s`` of remote time, with an excess
+that stayed put (a host that stalled delivers a burst of late samples whose excess shrinks as
+the burst catches up: not a step); the rate learnt so far is kept (the crystal did not
+change).
 
 O(1) per sample with no allocation except the block fit (once per block, ``blocks`` points).
 Pure: no clock of its own, no threads; the caller owns locking.
@@ -37,14 +38,15 @@ class ClockSync:
     """Host-clock estimate of a remote clock, from (remote ns, arrival ns) pairs."""
 
     __slots__ = (
-        "_above", "_above_since", "_blk_d", "_blk_end", "_blk_len", "_blk_r", "_block_ns", "_leak",
+        "_above", "_above_e", "_above_since", "_blk_d", "_blk_end", "_blk_len", "_blk_r",
+        "_block_ns", "_leak",
         "_n_pts", "_o", "_pt_d", "_pt_i", "_pt_r", "_ref_r", "_s", "_s_sigma", "_step_confirm",
         "_step_confirm_ns", "_step_ns", "last_remote_ns", "samples", "steps",
     )
 
     def __init__(self, *, block_s: float = 0.5, blocks: int = 32, leak_ppm: float = 50.0,
                  step_s: float = 0.05, step_confirm: int = 16,
-                 step_confirm_s: float = 0.5) -> None:
+                 step_confirm_s: float = 2.0) -> None:
         if not (block_s > 0.0 and blocks >= 2 and leak_ppm >= 0.0 and step_s > 0.0
                 and step_confirm >= 1):
             raise ValueError("ClockSync: block_s > 0, blocks >= 2, leak_ppm >= 0, step_s > 0, "
@@ -55,6 +57,7 @@ class ClockSync:
         self._step_confirm = step_confirm
         self._step_confirm_ns = round(step_confirm_s * 1e9)
         self._above_since = 0
+        self._above_e = 0.0
         self._pt_r = [0] * blocks  # remote time of each block minimum (ring)
         self._pt_d = [0] * blocks  # arrival - remote at that minimum
         self._pt_i = 0
@@ -91,8 +94,12 @@ class ClockSync:
             return arrival_ns
         if e > o + self._step_ns:
             # a delay spike, or the remote clock stepped back: held until it persists
-            if self._above == 0:
+            # the confirmation restarts whenever the excess drops by a quarter step below where
+            # it started: a catching-up burst keeps dropping, a real step stays put
+            excess = e - o
+            if self._above == 0 or excess < self._above_e - self._step_ns / 4:
                 self._above_since = remote_ns
+                self._above_e = excess
             self._above += 1
             if (self._above >= self._step_confirm
                     and remote_ns - self._above_since >= self._step_confirm_ns):
