@@ -41,17 +41,6 @@ def _fly(tmp_path: Path, capsys: pytest.CaptureFixture[str], **uris: str) -> tup
     return code, err
 
 
-def test_that_an_absent_flight_ctrl_is_one_line_naming_it(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    uri = f"serial://{tmp_path}/ttyUSB9?baud=500000"
-    code, err = _fly(tmp_path, capsys, fc=uri, servo=f"serial://{tmp_path}/ttyUSB8",
-                     mocap="natnet://127.0.0.1?local=127.0.0.1&body=fasthex")
-    assert code == 2
-    lines = err.strip().splitlines()
-    assert len(lines) == 1, err
-    assert lines[0].startswith(f"fasthex: {uri}: no such device"), lines[0]
-
-
 @pytest.fixture(scope="module")
 def emulator(tmp_path_factory: pytest.TempPathFactory) -> object:
     link = tmp_path_factory.mktemp("emu")
@@ -59,6 +48,20 @@ def emulator(tmp_path_factory: pytest.TempPathFactory) -> object:
                           (0.1, -0.1, 0.1), link, realtime_settings=False)
     yield emu
     emu.close()
+
+
+def test_that_an_absent_flight_ctrl_is_one_line_naming_it(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], emulator: EmulatorProcess) -> None:
+    # the servo and the MoCap are there (the emulator's); the Flight-Ctrl's port is not
+    uri = f"serial://{tmp_path}/ttyUSB9?baud=500000"
+    devices = emulator.devices
+    code, err = _fly(tmp_path, capsys, fc=uri,
+                     servo=f"serial://{devices['servo']}?baud=1000000&id=1",
+                     mocap=f"natnet://{devices['mocap']}?local=127.0.0.1&body=fasthex")
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith(f"fasthex: {uri}: no such device"), lines[0]
 
 
 def test_that_a_silent_mocap_server_is_one_line_naming_it(
