@@ -22,6 +22,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
     from config import find_config
     from controller.missions import Mission
     from drivers.dynamixel.device import probe_servo
@@ -41,8 +43,10 @@ def run(args: argparse.Namespace) -> int:
         try:
             if isinstance(cfg.backend, EmulatedBackend):
                 mission = Mission(load_mission(resolve_reference(path, cfg.mission)))
-                emulator = EmulatorProcess(cfg.backend, cfg.vehicle, mission.start_pos_w_m,
-                                           Path(tmp))
+                # a bench tool sends no `w`: the emulated board free-runs like a real one
+                emulator = EmulatorProcess(replace(cfg.backend, clock="realtime"), cfg.vehicle,
+                                           mission.start_pos_w_m, Path(tmp),
+                                           realtime_settings=False)
             uris = device_uris(cfg, emulator)
             try:
                 ident = probe(uris.flight_ctrl)

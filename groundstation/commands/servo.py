@@ -62,6 +62,8 @@ def format_reading(uri: str, r: ServoReading, gear_ratio: float, zero_steps: int
 
 
 def run(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
     from config import find_config
     from controller.missions import Mission
     from drivers.dynamixel.device import ServoError, TiltServo, TiltServoConfig, read_servo
@@ -90,8 +92,10 @@ def run(args: argparse.Namespace) -> int:
             else:
                 if isinstance(cfg.backend, EmulatedBackend):
                     mission = Mission(load_mission(resolve_reference(path, cfg.mission)))
-                    emulator = EmulatorProcess(cfg.backend, cfg.vehicle, mission.start_pos_w_m,
-                                               Path(tmp))
+                    # a bench tool sends no `w`: the emulated board free-runs like a real one
+                    emulator = EmulatorProcess(replace(cfg.backend, clock="realtime"), cfg.vehicle,
+                                               mission.start_pos_w_m, Path(tmp),
+                                               realtime_settings=False)
                 uris = device_uris(cfg, emulator)
                 uri, zero = uris.servo, uris.servo_zero_steps
                 if args.zero_steps is not None:  # a hardware session carries no zero offset

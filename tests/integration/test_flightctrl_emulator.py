@@ -132,7 +132,9 @@ def test_that_lockstep_free_runs_when_the_ground_station_goes_silent() -> None:
         t = open_transport(f"pty://{emu.path}")
         try:
             t.write(tk3.encode_frame(mkm.SetStreamPeriod(mkm.Stream.IMU, 2000).encode()))
-            # no w at all: after the grace period the samples come anyway, paced in real time
+            # one `w`, then silence: after the grace period the samples come anyway, paced in
+            # real time (before the first `w` ever, the much longer first-`w` grace applies)
+            t.write(tk3.encode_frame(mkm.SpinRates((0,) * 6).encode()))
             imus = _tk3_messages(t, tk3.Tk3Parser(), 20, mkm.ImuMessage)
             assert [m.seq for m in imus] == list(range(20))  # type: ignore[union-attr]
             assert emu.stats().freerun_entries >= 1
