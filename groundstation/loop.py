@@ -371,7 +371,11 @@ class FlightLoop:
             if sm.state is FlightState.PREFLIGHT and n % PREFLIGHT_CHECK_TICKS == 0:
                 timed_out = t_s > opts.preflight_timeout_s
                 if (t_s >= opts.min_preflight_s and estimator_ok) or timed_out:
-                    passed = self._preflight(t_s, est_state, servo_state, last_pose_t_s)
+                    # the newest pose's age on the host's clock now (realtime): a pose may
+                    # have been captured after this tick's IMU sample
+                    pose_age_s = t_s - last_pose_t_s if opts.lockstep or t0_s is None else \
+                        time.monotonic_ns() * 1e-9 - t0_s - last_pose_t_s
+                    passed = self._preflight(t_s, est_state, servo_state, pose_age_s)
                     if passed or timed_out:
                         self._report_preflight(t_s)
                     if passed:
@@ -545,7 +549,7 @@ class FlightLoop:
         return land
 
     def _preflight(self, t_s: float, est: VehicleState, servo: Any,
-                   last_pose_t_s: float) -> bool:
+                   pose_age_s: float) -> bool:
         """The checks of the architecture page; each with its value. True if all pass."""
         stats = self.imu.link_stats()
         mstats = self.pose.stats()
@@ -575,8 +579,8 @@ class FlightLoop:
              "no reading" if servo is None else
              f"{servo.health.name}, tilt {math.degrees(servo.tilt_rad):.2f} deg"),
             ("MoCap sees the body at >= 80 % of its rate",
-             t_s - last_pose_t_s < 0.1 and (mstats.rate_hz >= 80.0 or self.opts.lockstep),
-             f"{mstats.rate_hz:.0f} Hz, newest pose {1e3 * (t_s - last_pose_t_s):.0f} ms old"
+             pose_age_s < 0.1 and (mstats.rate_hz >= 80.0 or self.opts.lockstep),
+             f"{mstats.rate_hz:.0f} Hz, newest pose {1e3 * pose_age_s:.0f} ms old"
              + (f"; server clock offset {mstats.clock_offset_s:+.3f} s, drift "
                 f"{mstats.clock_drift_ppm:+.0f} {_ppm_error(mstats.clock_drift_sigma_ppm)}"
                 if math.isfinite(mstats.clock_drift_ppm)

@@ -88,7 +88,8 @@ def device_uris(cfg: SessionConfig, emulator: EmulatorProcess | None) -> DeviceU
     """Where the three devices are: the session's URIs, or the running emulator's."""
     backend = cfg.backend
     if isinstance(backend, HardwareBackend):
-        return DeviceUris(backend.flight_ctrl_uri, backend.servo_uri, backend.mocap_uri, 0)
+        return DeviceUris(backend.flight_ctrl_uri, backend.servo_uri, backend.mocap_uri,
+                          backend.servo_zero_offset_steps)
     if emulator is None:
         raise SessionError("the emulated backend is not running")
     devs = emulator.devices

@@ -12,6 +12,7 @@ emulated MoCap against the session's timeouts.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
@@ -42,6 +43,10 @@ class HardwareBackend:
     mocap_uri: str = spec(doc="e.g. natnet://192.168.1.10?local=192.168.1.2&body=fasthex")
     # the tk3 streams 100 Hz .. 2 kHz; the loop and its 500 Hz paper rate sit inside
     imu_rate_hz: float = spec(500.0, ge=100.0, le=2000.0)
+    # the MX-28T's multi-turn Present Position range; `fasthex servo home` prints the value
+    servo_zero_offset_steps: int = spec(0, ge=-28672, le=28672,
+                                        doc="servo Present Position (steps) at tilt 0, as "
+                                        "`fasthex servo home` prints it")
 
     def __post_init__(self) -> None:
         for key in ("flight_ctrl_uri", "servo_uri", "mocap_uri"):
@@ -191,6 +196,8 @@ def load_session(name_or_path: str | Path) -> SessionConfig:
     check_mission_against_vehicle(mission, params, str(mission_path), mission_lines)
     _check_geofence(mission, session.safety, str(mission_path), mission_lines, path, lines)
     backend = session.backend
+    if isinstance(backend, HardwareBackend):
+        _check_servo_zero(backend, params.tilt.max_tilt_deg, params.tilt.worm_ratio, path, lines)
     if isinstance(backend, EmulatedBackend):
         preset_path = _reference(path, lines, "backend.disturbances", "disturbances",
                                  backend.disturbances)
@@ -253,6 +260,22 @@ def _check_geofence(mission: object, safety: SafetyConfig, mission_file: str,
                     mission_file, line_of(mission_lines, key), key,
                     f"reaches {'xyz'[axis]} = {value:g} m, outside {fence} "
                     f"({lo_fence[axis]:g}..{hi_fence[axis]:g} m)")
+
+
+def _check_servo_zero(backend: HardwareBackend, max_tilt_deg: float, gear_ratio: float,
+                      session_path: Path, lines: dict[str, int]) -> None:
+    """The whole tilt range, from the zero offset up, must lie in the servo's multi-turn range."""
+    from drivers.dynamixel.control_table import MULTI_TURN_MAX_STEPS
+    from drivers.dynamixel.device import tilt_to_steps
+
+    top = tilt_to_steps(math.radians(max_tilt_deg), gear_ratio, backend.servo_zero_offset_steps)
+    if top > MULTI_TURN_MAX_STEPS:
+        key = "backend.servo_zero_offset_steps"
+        raise ConfigError(
+            str(session_path), line_of(lines, key), key,
+            f"the vehicle's max tilt {max_tilt_deg:g} deg maps to {top} steps from this zero, "
+            f"beyond the servo's multi-turn range (+-{MULTI_TURN_MAX_STEPS}); expected at most "
+            f"{MULTI_TURN_MAX_STEPS - (top - backend.servo_zero_offset_steps)}")
 
 
 def _check_emulated_mocap(preset: object, session: SessionConfig, preset_file: str,

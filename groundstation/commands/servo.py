@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
                                                realtime_settings=False)
                 uris = device_uris(cfg, emulator)
                 uri, zero = uris.servo, uris.servo_zero_steps
-                if args.zero_steps is not None:  # a hardware session carries no zero offset
+                if args.zero_steps is not None:  # overrides the session's zero
                     zero = args.zero_steps
             if args.action == "status":
                 try:
@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
                 if args.action == "home":
                     offset = servo.home(math.radians(args.at_deg))
                     print(f"zero offset: {offset} steps (Present Position at tilt 0); put it "
-                          "in the servo configuration as zero_offset_steps")
+                          "in the session as backend.servo_zero_offset_steps")
                 else:
                     goal = math.radians(args.deg)
                     servo.set_tilt(goal)

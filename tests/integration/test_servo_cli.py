@@ -99,3 +99,61 @@ def test_that_move_and_home_leave_the_torque_off(
     assert torque_after_move == 0 and torque_after_home == 0
     assert tilt_steps - 1024 == pytest.approx(2 / 0.05 * 4096 / 360, abs=3)
     assert capsys.readouterr().out.count("torque off (the worm drive holds the tilt)") == 2
+
+
+# ------------------------------------------------------------- the session's servo zero offset
+
+_HW_SESSION = """\
+schema: fasthex.session
+version: 1
+name: bench-servo-zero
+vehicle: fasthex
+mission: exp1-hover-tilt-steps
+backend:
+  kind: hardware
+  flight_ctrl_uri: serial:///dev/ttyUSB0?baud=500000
+  servo_uri: serial://{servo}?baud=1000000&id=1
+  mocap_uri: natnet://192.0.2.10?local=192.0.2.20&body=fasthex
+{zero}"""
+
+
+def test_that_the_sessions_servo_zero_offset_is_the_tilt_zero_of_status_and_move(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Fixture: a servo whose tilt 0 is at Present Position 1024, named by two hardware
+    # sessions, one with the zero written down (as `servo home` prints it), one without
+    with _mx28(tmp_path) as emu:
+        with_zero = tmp_path / "with-zero.yaml"
+        with_zero.write_text(_HW_SESSION.format(servo=emu.path,
+                                                zero="  servo_zero_offset_steps: 1024\n"))
+        without = tmp_path / "without.yaml"
+        without.write_text(_HW_SESSION.format(servo=emu.path, zero=""))
+        # Test
+        status_with = main(["servo", "status", "--session", str(with_zero)])
+        out_with = capsys.readouterr().out
+        status_without = main(["servo", "status", "--session", str(without)])
+        out_without = capsys.readouterr().out
+        moved = main(["servo", "move", "2", "--session", str(with_zero)])
+        tilt_steps = emu.register(Reg.PRESENT_POSITION)
+    # Assert: with the zero the mechanism reads 0 deg; without it, 1024 steps above the
+    # encoder's zero = 1024 x 360/4096 deg at the servo x 0.05 (20:1 worm) = 4.50 deg
+    assert status_with == status_without == moved == 0
+    assert "tilt 0.00 deg" in out_with
+    assert "tilt 4.50 deg" in out_without
+    # 2 deg of tilt lands 455 steps above the session's zero, not above the encoder's
+    assert tilt_steps - 1024 == pytest.approx(2 / 0.05 * 4096 / 360, abs=3)
+
+
+def test_that_a_servo_zero_that_puts_the_tilt_range_past_the_encoder_is_a_config_error(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Fixture: 35 deg of tilt is 700 deg at the servo = 7964 steps: a zero at 28000 overflows
+    session = tmp_path / "s.yaml"
+    session.write_text(_HW_SESSION.format(servo="/dev/null",
+                                          zero="  servo_zero_offset_steps: 28000\n"))
+    # Test
+    code = main(["servo", "status", "--session", str(session)])
+    err = capsys.readouterr().err
+    # Assert: one FILE:LINE: KEY: expectation line, the line of the key
+    assert code == 2
+    assert err.count("\n") == 1
+    assert f"{session}:11: backend.servo_zero_offset_steps:" in err
+    assert "beyond the servo's multi-turn range" in err and "expected at most 20708" in err
