@@ -1,12 +1,148 @@
-"""Shared fixtures: the shipped vehicles, loaded through the same path as the CLI."""
+"""Shared fixtures (the shipped vehicles, loaded through the same path as the CLI) and the
+scheduling of the suite under pytest-xdist.
+
+The README's test command runs the suite on three workers (``pytest -n 3``). Lockstep flights are
+repeatable whatever the load (each tick is a round trip through the emulated board's pty), so
+two of them may run side by side. Tests that measure wall time, real-time streams or scheduling
+(a realtime emulator, MoCap rates and latencies, a pty driven as a terminal, a process killed
+in flight) must run alone: they are marked ``exclusive`` (a module in :data:`EXCLUSIVE_MODULES`
+or the marker on the test) and hold a run-wide exclusive lock while every other test holds it
+shared. The lock is two ``flock`` files in a directory the controller makes for the run: a
+turnstile that a waiting exclusive test holds, so that shared holders cannot starve it. Without
+xdist nothing is locked.
+"""
 
 from __future__ import annotations
+
+import contextlib
+import fcntl
+import os
+import shutil
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
 from controller.model import VehicleModel
 from controller.params import VehicleParams
 from groundstation.configs import load_vehicle
+
+#: test modules (paths below tests/) whose every test runs alone: they assert on real time
+#: (rates, latencies, clock estimates, the 100 ms a kill may lose, IMU gaps on the host clock,
+#: servo reply timeouts) or on signals delivered at a time; everything else shares the machine
+EXCLUSIVE_MODULES = frozenset({
+    "hil/test_hil_flight_ctrl.py",
+    "hil/test_hil_mocap.py",
+    "hil/test_hil_servo.py",
+    "integration/test_bench_leave_devices.py",
+    "integration/test_clock_sync.py",
+    "integration/test_flightctrl_emulator.py",
+    "integration/test_flightctrl_link.py",
+    "integration/test_fly_kill.py",
+    "integration/test_fly_sigint.py",
+    "integration/test_fly_signals.py",
+    "integration/test_mocap_cli.py",
+    "integration/test_mocap_natnet.py",
+    "integration/test_mocap_natnet_peer.py",
+    "integration/test_mocap_vrpn.py",
+    "integration/test_tilt_servo_faults.py",
+    "unit/test_telemetry_ring.py",
+})
+
+_TESTS = Path(__file__).resolve().parent
+_LOCK_DIR_KEY = pytest.StashKey[str]()
+
+
+#: the longest shared modules (lockstep flights), started first so that no worker is left
+#: with one of them at the end of the run; in this order
+LONG_SHARED_MODULES = (
+    "integration/test_fly_paper_exp1.py",
+    "integration/test_fly_paper_exp2a.py",
+    "integration/test_fly_paper_exp2b.py",
+    "integration/test_fly_emulated.py",
+    "integration/test_failsafes.py",
+    "integration/test_ukf_simulated.py",
+    "integration/test_simulate_paper.py",
+    "integration/test_fly_mavlink.py",
+    "integration/test_dashboard.py",
+    "integration/test_takeoff_on_estimate.py",
+)
+
+
+def _module(item: pytest.Item) -> str:
+    try:
+        return Path(str(item.path)).resolve().relative_to(_TESTS).as_posix()
+    except ValueError:
+        return str(item.path)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    # Every worker collects, and orders, the same way: the exclusive modules first (the run
+    # is serial while they last), then the long shared flights, then the rest, the unit tests
+    # last (short ones fill the end of the run evenly). A module's tests stay together, in
+    # their order.
+    order = {m: i for i, m in enumerate(LONG_SHARED_MODULES)}
+
+    def rank(pair: tuple[int, pytest.Item]) -> tuple[int, int, int]:
+        index, item = pair
+        mod = _module(item)
+        if mod in EXCLUSIVE_MODULES:
+            return (0, 0, index)
+        if mod in order:
+            return (1, order[mod], index)
+        return (2 if mod.startswith("integration/") else 3, 0, index)
+
+    for item in items:
+        if _module(item) in EXCLUSIVE_MODULES:
+            item.add_marker(pytest.mark.exclusive)
+    items[:] = [item for _, item in sorted(enumerate(items), key=rank)]
+
+
+_LOCK_DIR_ENV = "FASTHEX_TEST_LOCK_DIR"
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line("markers", "exclusive: runs alone under pytest-xdist (timing, real "
+                            "time, signals); see tests/conftest.py")
+    if not hasattr(config, "workerinput"):
+        # the controller: a fresh lock directory for this run, inherited by its workers (a
+        # pytest started by a test is a controller of its own: it never waits on ours)
+        lock_dir = tempfile.mkdtemp(prefix="pytest-run-lock-")
+        os.environ[_LOCK_DIR_ENV] = lock_dir
+        config.stash[_LOCK_DIR_KEY] = lock_dir
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    lock_dir = config.stash.get(_LOCK_DIR_KEY, None)
+    if lock_dir is not None:
+        shutil.rmtree(lock_dir, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def _run_lock(config: pytest.Config, exclusive: bool) -> Iterator[None]:
+    lock_dir = os.environ.get(_LOCK_DIR_ENV)
+    if not hasattr(config, "workerinput") or not lock_dir:  # not an xdist worker
+        yield
+        return
+    base = Path(lock_dir)
+    with open(base / "turnstile", "a+b") as turnstile, open(base / "lock", "a+b") as lock:
+        fcntl.flock(turnstile, fcntl.LOCK_EX)
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH)
+        finally:
+            fcntl.flock(turnstile, fcntl.LOCK_UN)
+        try:
+            yield
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
+    # setup, call and teardown of the test, its function and module fixtures included
+    with _run_lock(item.config, item.get_closest_marker("exclusive") is not None):
+        yield
 
 
 @pytest.fixture(scope="session")

@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from controller.missions import Mission
 from controller.params import VehicleParams
 from groundstation.configs import load_mission, load_vehicle
 from groundstation.session import FlightSession, SessionOutcome
 from groundstation.session_config import SessionConfig, load_session
+
+if TYPE_CHECKING:
+    from groundstation.flight import FlightState
+    from groundstation.record import FlightRecord
 
 SHORT_MISSION = """\
 schema: fasthex.mission
@@ -116,3 +121,31 @@ def fly_shipped_session(tmp_path: Path, session: str, seed: int = 1) -> SessionO
     mission = Mission(load_mission(resolve_reference(path, cfg.mission)))
     return FlightSession(cfg, params, mission, record_path=tmp_path / f"{session}.fhr",
                          echo_events=False, dashboard="off").run()
+
+
+PaperFlight = tuple[list["FlightState"], "FlightRecord", dict[str, float]]
+
+
+def fly_paper_experiment(tmp_path: Path, session: str) -> PaperFlight:
+    """A shipped experiment session flown in lockstep through the byte path: its transitions,
+    its record (scored on the emulated vehicle's true state) and the metrics ``simulate``
+    prints. One experiment per test module, so that pytest-xdist flies them side by side."""
+    from groundstation.metrics import flight_metrics
+    from groundstation.record import read_record
+
+    out = fly_shipped_session(tmp_path, session)
+    rec = read_record(out.record_path)
+    return ([t.to_state for t in out.result.transitions], rec,
+            flight_metrics(rec.rows, min_spin_hz=16.0, max_spin_hz=102.0))
+
+
+def assert_normal_paper_flight(flight: PaperFlight) -> None:
+    """Armed, took off, flew the mission, landed and disarmed; scored on the true state, every
+    rotor within its spin limits."""
+    from groundstation.flight import FlightState
+
+    states, rec, m = flight
+    assert states == [FlightState.ARMED, FlightState.TAKEOFF, FlightState.MISSION,
+                      FlightState.LANDING, FlightState.DISARMED]
+    assert rec.metadata["state"].startswith("true state")
+    assert m["all_spin_within_limits"] == 1.0

@@ -574,9 +574,12 @@ class FlightCtrl:
 
     @property
     def rx_errors(self) -> int:
-        """Received frames dropped so far (framing errors, malformed or implausible messages,
-        rejected sequence numbers): a cheap counter the loop can poll every tick."""
-        return (self._tk3.stats.frame_errors + self._malformed + self._implausible
+        """Receive errors so far (framing errors, bytes outside any frame, malformed or
+        implausible messages, rejected sequence numbers): a cheap counter the loop can poll
+        every tick. A frame whose start byte was corrupted shows only as bytes outside any
+        frame, so those count too."""
+        stats = self._tk3.stats
+        return (stats.frame_errors + stats.garbage_bytes + self._malformed + self._implausible
                 + self._timebase.rejected)
 
     def latest_imu(self) -> ImuSample | None:

@@ -231,3 +231,23 @@ def test_that_health_reports_stale_and_low_rate_imu_streams() -> None:
         assert stats.imu.missing >= 2 * 198
     finally:
         fc.close()
+
+
+def test_that_a_frame_with_its_start_byte_corrupted_counts_as_a_receive_error(
+        link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
+    # Fixture: one good sample read, the error counter as the loop sees it
+    fc, wire, clock = link
+    assert _push(fc, wire, clock, _imu(0), 0.0) is not None
+    before = fc.rx_errors
+    # Test: the next frame arrives with its '^' changed: its bytes are outside any frame
+    clock.t_ns = 1_000 * MS + 2 * MS
+    wire.write(b"\x00" + _imu(1)[1:])
+    for _ in range(200):
+        if fc.rx_errors != before:
+            break
+        fc.wait_next(0.005)
+    # Assert: a receive error (a lockstep loop then knows the sample is lost, at once), and
+    # the next good frame still reads
+    assert fc.rx_errors > before
+    sample = _push(fc, wire, clock, _imu(2), 4.0)
+    assert sample is not None and sample.seq == 2
