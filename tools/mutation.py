@@ -65,7 +65,8 @@ TARGETS = (
            ("tests/unit/test_flight_state_machine.py",), noconftest=True),
     Target("preflight", "groundstation/loop.py",
            ("FlightLoop._preflight", "FlightLoop._health", "_servo_health"),
-           ("tests/integration/test_failsafes.py::"
+           ("tests/unit/test_preflight_checks.py",
+            "tests/integration/test_failsafes.py::"
             "test_that_a_silent_servo_a_slow_imu_and_a_displaced_vehicle_each_refuse_the_flight",
             "tests/integration/test_failsafes.py::"
             "test_that_no_mocap_refuses_the_flight_and_no_check_passes_on_the_placeholder_estimate",
