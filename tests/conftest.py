@@ -77,8 +77,8 @@ def _module(item: pytest.Item) -> str:
         return str(item.path)
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    # Every worker collects, and orders, the same way: the exclusive modules first (the run
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    # Every xdist worker collects, and orders, the same way: the exclusive modules first (the run
     # is serial while they last), then the long shared flights, then the rest, the unit tests
     # last (short ones fill the end of the run evenly). A module's tests stay together, in
     # their order.
@@ -96,7 +96,8 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if _module(item) in EXCLUSIVE_MODULES:
             item.add_marker(pytest.mark.exclusive)
-    items[:] = [item for _, item in sorted(enumerate(items), key=rank)]
+    if hasattr(config, "workerinput"):  # one process: the order given (e.g. pytest -x A B)
+        items[:] = [item for _, item in sorted(enumerate(items), key=rank)]
 
 
 _LOCK_DIR_ENV = "FASTHEX_TEST_LOCK_DIR"
@@ -105,7 +106,7 @@ _LOCK_DIR_ENV = "FASTHEX_TEST_LOCK_DIR"
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line("markers", "exclusive: runs alone under pytest-xdist (timing, real "
                             "time, signals); see tests/conftest.py")
-    if not hasattr(config, "workerinput"):
+    if not hasattr(config, "workerinput") and getattr(config.option, "numprocesses", None):
         # the controller: a fresh lock directory for this run, inherited by its workers (a
         # pytest started by a test is a controller of its own: it never waits on ours)
         lock_dir = tempfile.mkdtemp(prefix="pytest-run-lock-")
