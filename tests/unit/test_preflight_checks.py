@@ -90,6 +90,8 @@ def test_that_the_servo_check_needs_a_reading_an_ok_servo_and_the_goal_within_1_
     # exactly 1 deg off its goal is not "at the commanded angle"
     assert _checks(servo=_servo(tilt_deg=1.0, goal_deg=0.0))[SERVO][0] is False
     assert _checks(servo=_servo(tilt_deg=5.0, goal_deg=0.0))[SERVO][0] is False
+    # the difference to the goal counts, not the angle: at 10 deg and asked 10.5 deg it passes
+    assert _checks(servo=_servo(tilt_deg=10.0, goal_deg=10.5))[SERVO][0] is True
     # no goal commanded yet (NaN): an answering servo is enough, a silent one is not
     assert _checks(servo=_servo(goal_deg=math.nan))[SERVO][0] is True
     assert _checks(servo=_servo(ok=False, goal_deg=math.nan))[SERVO] == (
