@@ -14,6 +14,8 @@ import math
 from types import SimpleNamespace
 from typing import Any
 
+import pytest
+
 from controller.reference import VehicleState
 from drivers.dynamixel.device import ServoHealth
 from groundstation.loop import FlightLoop, LoopOptions
@@ -125,3 +127,25 @@ def test_that_an_uninitialised_estimator_fails_even_without_a_flag() -> None:
 def test_that_the_start_offset_limit_itself_fails() -> None:
     assert _checks(x_m=0.249)[START] == (True, "249 mm away")
     assert _checks(x_m=0.25)[START] == (False, "250 mm away")
+
+
+def test_that_the_health_snapshot_reads_the_body_tilt_from_the_estimate() -> None:
+    loop = object.__new__(FlightLoop)
+    half = math.radians(30.0) / 2  # 30 deg of roll
+    est = VehicleState((0.0, 0.0, 1.0), (0.0, 0.0, 0.0), (math.cos(half), math.sin(half), 0.0,
+                                                           0.0), (0.0, 0.0, 0.0))
+    h = loop._health(0.0, True, 0.01, True, ServoHealth.OK, 16.0, est, False, "mission", True)
+    assert h.body_tilt_deg == pytest.approx(30.0, abs=1e-9)
+    assert (h.imu_rate_ok, h.mocap_age_s, h.battery_v, h.pos_w_m) == (True, 0.01, 16.0,
+                                                                      (0.0, 0.0, 1.0))
+
+
+def test_that_a_lost_imu_snapshot_adds_no_take_off_or_mocap_failsafe_to_the_cut() -> None:
+    # the loop's snapshot when the IMU stream is lost passes only what it knows; the take-off
+    # and MoCap-consistency flags default to "fine", so the IMU cut is the one reason given
+    loop = object.__new__(FlightLoop)
+    est = VehicleState((0.0, 0.0, 1.0), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    h = loop._health(math.inf, False, math.inf, False, ServoHealth.OK, math.inf, est, False,
+                     "mission", False)
+    assert h.lifted_off and h.takeoff_reached and h.mocap_consistent
+    assert h.body_tilt_deg == 0.0
