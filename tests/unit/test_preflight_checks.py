@@ -149,3 +149,12 @@ def test_that_a_lost_imu_snapshot_adds_no_take_off_or_mocap_failsafe_to_the_cut(
                      "mission", False)
     assert h.lifted_off and h.takeoff_reached and h.mocap_consistent
     assert h.body_tilt_deg == 0.0
+
+
+def test_that_an_upside_down_estimate_a_hair_off_unit_reads_180_deg_not_an_error() -> None:
+    # |q| a little above 1 (rounding in the filter) puts r33 below -1: acos must not raise
+    loop = object.__new__(FlightLoop)
+    est = VehicleState((0.0, 0.0, 1.0), (0.0, 0.0, 0.0), (0.0, 1.0 + 1e-7, 0.0, 0.0),
+                       (0.0, 0.0, 0.0))
+    h = loop._health(0.0, True, 0.01, True, ServoHealth.OK, 16.0, est, False, "mission", True)
+    assert h.body_tilt_deg == 180.0
