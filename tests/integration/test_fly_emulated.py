@@ -49,6 +49,8 @@ def test_that_a_short_flight_is_flown_landed_and_recorded(tmp_path: Path) -> Non
     assert math.degrees(measured["alpha_rad"].max()) == pytest.approx(10.0, abs=0.3)
     events = out.events_path.read_text()
     assert "PREFLIGHT -> ARMED" in events and "LANDING -> DISARMED: touchdown" in events
+    # the operator reads the check table once, when it passes, just before arming
+    assert events.count(" preflight PASS: ") == 6 and " preflight FAIL: " not in events
 
 
 def test_that_two_runs_with_the_same_seed_give_identical_records(tmp_path: Path) -> None:
