@@ -12,7 +12,6 @@ emulated MoCap against the session's timeouts.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
@@ -265,17 +264,12 @@ def _check_geofence(mission: object, safety: SafetyConfig, mission_file: str,
 def _check_servo_zero(backend: HardwareBackend, max_tilt_deg: float, gear_ratio: float,
                       session_path: Path, lines: dict[str, int]) -> None:
     """The whole tilt range, from the zero offset up, must lie in the servo's multi-turn range."""
-    from drivers.dynamixel.control_table import MULTI_TURN_MAX_STEPS
-    from drivers.dynamixel.device import tilt_to_steps
+    from drivers.dynamixel.device import tilt_range_problem
 
-    top = tilt_to_steps(math.radians(max_tilt_deg), gear_ratio, backend.servo_zero_offset_steps)
-    if top > MULTI_TURN_MAX_STEPS:
+    problem = tilt_range_problem(backend.servo_zero_offset_steps, max_tilt_deg, gear_ratio)
+    if problem:
         key = "backend.servo_zero_offset_steps"
-        raise ConfigError(
-            str(session_path), line_of(lines, key), key,
-            f"the vehicle's max tilt {max_tilt_deg:g} deg maps to {top} steps from this zero, "
-            f"beyond the servo's multi-turn range (+-{MULTI_TURN_MAX_STEPS}); expected at most "
-            f"{MULTI_TURN_MAX_STEPS - (top - backend.servo_zero_offset_steps)}")
+        raise ConfigError(str(session_path), line_of(lines, key), key, problem)
 
 
 def _check_emulated_mocap(preset: object, session: SessionConfig, preset_file: str,

@@ -145,11 +145,9 @@ class TiltServoConfig:
 
     def __post_init__(self) -> None:
         parse_servo_uri(self.uri)  # raises TransportUriError, a ValueError
-        top = self.zero_offset_steps + math.radians(self.max_tilt_deg) / self.gear_ratio \
-            / RAD_PER_STEP
-        if not MULTI_TURN_MIN_STEPS <= top <= MULTI_TURN_MAX_STEPS:
-            raise ConfigValueError("zero_offset_steps",
-                                   f"max tilt maps to {top:.0f} steps, outside +-28672")
+        problem = tilt_range_problem(self.zero_offset_steps, self.max_tilt_deg, self.gear_ratio)
+        if problem:
+            raise ConfigValueError("zero_offset_steps", problem)
 
     @property
     def max_tilt_rad(self) -> float:
@@ -197,6 +195,18 @@ def parse_servo_uri(uri: str) -> ServoUri:
 
 
 # ---------------------------------------------------------------------------- geometry
+def tilt_range_problem(zero_offset_steps: int, max_tilt_deg: float, gear_ratio: float) -> str:
+    """Why the tilt range [0, max] from this zero does not fit the multi-turn position range
+    (empty if it does). The zero itself is within the range (its config spec); the tilt only
+    adds steps to it."""
+    top = tilt_to_steps(math.radians(max_tilt_deg), gear_ratio, zero_offset_steps)
+    if top <= MULTI_TURN_MAX_STEPS:
+        return ""
+    return (f"the max tilt {max_tilt_deg:g} deg maps to {top} steps from a zero at "
+            f"{zero_offset_steps}, beyond the servo's multi-turn range (+-{MULTI_TURN_MAX_STEPS});"
+            f" expected a zero of at most {MULTI_TURN_MAX_STEPS - (top - zero_offset_steps)}")
+
+
 def tilt_to_steps(tilt_rad: float, gear_ratio: float, zero_offset_steps: int) -> int:
     """Goal Position (steps) for a tilt angle: through the worm, then 0.088 deg steps."""
     return round(tilt_rad / gear_ratio / RAD_PER_STEP) + zero_offset_steps

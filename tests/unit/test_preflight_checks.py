@@ -47,13 +47,13 @@ def _checks(*, lockstep: bool = True, rate_fraction: float = 1.0, wall_rate_hz: 
     clock = SimpleNamespace(known=clock_known, rate_hz=494.0, offset_s=1.5, drift_ppm=-12000.0,
                             drift_sigma_ppm=3.0)
     stats = SimpleNamespace(imu=SimpleNamespace(measured_rate_hz=wall_rate_hz), imu_clock=clock)
-    loop.imu = SimpleNamespace(link_stats=lambda: stats)  # type: ignore[assignment]
+    loop.imu = SimpleNamespace(link_stats=lambda: stats)
     mstats = SimpleNamespace(rate_hz=mocap_rate_hz, clock_offset_s=0.0,
                              clock_drift_ppm=math.nan, clock_drift_sigma_ppm=math.nan)
-    loop.pose = SimpleNamespace(stats=lambda: mstats)  # type: ignore[assignment]
-    loop.mission = SimpleNamespace(start_pos_w_m=START_POS_W_M)  # type: ignore[assignment]
+    loop.pose = SimpleNamespace(stats=lambda: mstats)
+    loop.mission = SimpleNamespace(start_pos_w_m=START_POS_W_M)
     health = SimpleNamespace(ok=healthy, flags="OK" if healthy else "DIVERGED")
-    loop.ukf = SimpleNamespace(initialized=initialized,  # type: ignore[assignment]
+    loop.ukf = SimpleNamespace(initialized=initialized,
                                health=lambda: health)
     est = VehicleState((x_m, 0.0, 0.1), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
     reading = None if servo is NO_READING else _servo() if servo is None else servo
