@@ -303,6 +303,14 @@ def run_tests(work: Path, tests: tuple[str, ...], timeout_s: float,
     return "killed", dt
 
 
+def _select(mutants: list[Mutant], skip: int, lines: str) -> list[Mutant]:
+    wanted: set[int] = set()
+    for part in filter(None, lines.split(",")):
+        lo, _, hi = part.partition("-")
+        wanted.update(range(int(lo), int(hi or lo) + 1))
+    return [m for m in mutants[skip:] if not wanted or m.line in wanted]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--targets", nargs="*", default=[t.name for t in TARGETS
@@ -311,6 +319,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="default: every target whose tests are fast (not loop, telemetry)")
     ap.add_argument("--list", action="store_true", help="list the mutants, run nothing")
     ap.add_argument("--max-mutants", type=int, default=0, help="per target (0: all)")
+    ap.add_argument("--skip", type=int, default=0, help="per target: leave out its first N "
+                    "mutants (the order is deterministic: resume an interrupted run)")
+    ap.add_argument("--lines", default="", help="only mutants on these source lines, "
+                    "e.g. 720-724,393")
     ap.add_argument("--timeout", type=float, default=300.0, help="per mutant, seconds")
     ap.add_argument("--tests", nargs="*", default=None,
                     help="override the target's tests (pytest node ids)")
@@ -322,7 +334,7 @@ def main(argv: list[str] | None = None) -> int:
     targets = [t for t in TARGETS if t.name in args.targets]
     if args.list:
         for target in targets:
-            mutants = mutants_of(target)
+            mutants = _select(mutants_of(target), args.skip, args.lines)
             print(f"== {target.name}: {target.path} ({len(mutants)} mutants)")
             for m in mutants:
                 print(f"  {m.target.path}:{m.line}: {m.description}")
@@ -338,7 +350,7 @@ def main(argv: list[str] | None = None) -> int:
     survivors: list[Mutant] = []
     try:
         for target in targets:
-            mutants = mutants_of(target, works[0])
+            mutants = _select(mutants_of(target, works[0]), args.skip, args.lines)
             if args.max_mutants:
                 mutants = mutants[:args.max_mutants]
             print(f"== {target.name}: {target.path} ({len(mutants)} mutants)", flush=True)
