@@ -31,11 +31,17 @@ try:
 
     def _jit(fn: F) -> F:
         return numba.njit(cache=True, fastmath=False, nogil=True)(fn)  # type: ignore[return-value]
+
+    def _jit_reassoc(fn: F) -> F:
+        # reassociation only: no "no NaN / no inf" assumption, the finiteness checks hold
+        return numba.njit(cache=True, fastmath={"reassoc"}, nogil=True)(fn)  # type: ignore[return-value]
 except ImportError:             # pragma: no cover - exercised by the fallback test
     AVAILABLE = False
 
     def _jit(fn: F) -> F:
         return fn
+
+    _jit_reassoc = _jit
 
 
 @_jit
@@ -94,9 +100,29 @@ def _mul(aw: float, ax: float, ay: float, az: float,
             aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
 
 
+@_jit_reassoc
+def _weighted_outer(devT: FloatArray, Wc: FloatArray, add: FloatArray, cov: FloatArray,
+                    wd: FloatArray) -> None:
+    """cov = sum_i Wc[i] d_i d_i^T + add over the columns d_i of ``devT`` (n x m, each row
+    contiguous so the sums over i vectorise; they are reassociated, hence this helper alone
+    is compiled with ``reassoc``)."""
+    n, m = devT.shape
+    for a in range(n):
+        for i in range(m):
+            wd[i] = Wc[i] * devT[a, i]
+        for b in range(a, n):
+            s = 0.0
+            for i in range(m):
+                s += wd[i] * devT[b, i]
+            cov[a, b] = s + add[a, b]
+            cov[b, a] = s + add[b, a]
+
+
 @_jit
 def _mean_cov(sig: FloatArray, Wm: FloatArray, Wc: FloatArray, add: FloatArray,
-              mean: FloatArray, cov: FloatArray, dev: FloatArray) -> None:
+              mean: FloatArray, cov: FloatArray, devT: FloatArray) -> None:
+    """Weighted mean and covariance (plus ``add``) of the rows of ``sig``; ``devT`` (n x m)
+    is scratch."""
     m, n = sig.shape
     for j in range(n):
         s = 0.0
@@ -105,21 +131,15 @@ def _mean_cov(sig: FloatArray, Wm: FloatArray, Wc: FloatArray, add: FloatArray,
         mean[j] = s
     for i in range(m):
         for j in range(n):
-            dev[i, j] = sig[i, j] - mean[j]
-    for a in range(n):
-        for b in range(a, n):
-            s = 0.0
-            for i in range(m):
-                s += Wc[i] * dev[i, a] * dev[i, b]
-            cov[a, b] = s + add[a, b]
-            cov[b, a] = s + add[b, a]
+            devT[j, i] = sig[i, j] - mean[j]
+    _weighted_outer(devT, Wc, add, cov, np.empty(m))
 
 
 @_jit
 def predict(x: FloatArray, P: FloatArray, Q: FloatArray, dt: float, gyro: FloatArray,
             accel: FloatArray, q_ref: FloatArray, q_next_inv: FloatArray,
             gravity_w: FloatArray, Wm: FloatArray, Wc: FloatArray, scale: float,
-            sig: FloatArray, work: FloatArray, U: FloatArray, dev: FloatArray,
+            sig: FloatArray, work: FloatArray, U: FloatArray, devT: FloatArray,
             x_out: FloatArray, P_out: FloatArray) -> bool:
     """One predict into ``x_out``/``P_out``; False if P is not positive definite."""
     if not _draw_sigmas(x, P, scale, sig, work, U):
@@ -151,7 +171,7 @@ def predict(x: FloatArray, P: FloatArray, Q: FloatArray, dt: float, gyro: FloatA
         s[4] += dt * ay
         s[5] += dt * az
         s[6], s[7], s[8] = lx * f, ly * f, lz * f
-    _mean_cov(sig, Wm, Wc, Q, x_out, P_out, dev)
+    _mean_cov(sig, Wm, Wc, Q, x_out, P_out, devT)
     return True
 
 
@@ -159,10 +179,14 @@ def predict(x: FloatArray, P: FloatArray, Q: FloatArray, dt: float, gyro: FloatA
 def update(x: FloatArray, P: FloatArray, z: FloatArray, R: FloatArray, meas_idx: Any,
            Wm: FloatArray, Wc: FloatArray, scale: float, sig: FloatArray, work: FloatArray,
            U: FloatArray, x_out: FloatArray, P_out: FloatArray, y_out: FloatArray,
-           S_out: FloatArray) -> bool:
-    """One (not yet gated) update; False if P or S is not positive definite."""
+           S_out: FloatArray) -> float:
+    """One (not yet gated) update -> the NIS ``y^T S^-1 y``; -1 if P or S is not positive
+    definite (nothing meaningful written).
+
+    S is factored once (Cholesky, ``S = L L^T``): the gain ``K = Pxz S^-1`` is solved row by
+    row, ``P - K S K^T`` is ``P - Pxz K^T``, and the NIS is ``|L^-1 y|^2``; no inverse."""
     if not _draw_sigmas(x, P, scale, sig, work, U):
-        return False
+        return -1.0
     m, n = sig.shape
     nz = meas_idx.shape[0]
     zp = np.zeros(nz)
@@ -189,11 +213,41 @@ def update(x: FloatArray, P: FloatArray, z: FloatArray, R: FloatArray, meas_idx:
             d = w * (sig[i, a] - x[a])
             for b in range(nz):
                 Pxz[a, b] += d * dz[i, b]
-    S_inv = np.linalg.inv(S_out)
-    K = Pxz @ S_inv
-    for k in range(nz):
-        y_out[k] = z[k] - zp[k]
-    KS = K @ S_out
+    L = np.zeros((nz, nz))          # S = L L^T, lower
+    for j in range(nz):
+        s = S_out[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:
+            return -1.0
+        d = math.sqrt(s)
+        L[j, j] = d
+        for i in range(j + 1, nz):
+            t = S_out[i, j]
+            for k in range(j):
+                t -= L[i, k] * L[j, k]
+            L[i, j] = t / d
+    K = np.empty((n, nz))
+    u = np.empty(nz)
+    for a in range(n):              # S K[a]^T = Pxz[a]^T: forward, then back substitution
+        for i in range(nz):
+            t = Pxz[a, i]
+            for k in range(i):
+                t -= L[i, k] * u[k]
+            u[i] = t / L[i, i]
+        for i in range(nz - 1, -1, -1):
+            t = u[i]
+            for k in range(i + 1, nz):
+                t -= L[k, i] * K[a, k]
+            K[a, i] = t / L[i, i]
+    nis = 0.0
+    for i in range(nz):
+        y_out[i] = z[i] - zp[i]
+        t = y_out[i]
+        for k in range(i):
+            t -= L[i, k] * u[k]
+        u[i] = t / L[i, i]
+        nis += u[i] * u[i]
     for a in range(n):
         s = x[a]
         for k in range(nz):
@@ -202,9 +256,9 @@ def update(x: FloatArray, P: FloatArray, z: FloatArray, R: FloatArray, meas_idx:
         for b in range(n):
             t = 0.0
             for k in range(nz):
-                t += KS[a, k] * K[b, k]
+                t += Pxz[a, k] * K[b, k]
             P_out[a, b] = P[a, b] - t
-    return True
+    return nis
 
 
 @_jit
@@ -252,7 +306,7 @@ def _finite(x: FloatArray, P: FloatArray) -> bool:
 def predict_step(x: FloatArray, P: FloatArray, Q: FloatArray, dt: float, gyro: FloatArray,
                  accel: FloatArray, q_ref: FloatArray, gravity_w: FloatArray, Wm: FloatArray,
                  Wc: FloatArray, scale: float, min_variance: float, max_pos_variance: float,
-                 sig: FloatArray, work: FloatArray, U: FloatArray, dev: FloatArray,
+                 sig: FloatArray, work: FloatArray, U: FloatArray, devT: FloatArray,
                  q_tmp: FloatArray, x_out: FloatArray, P_out: FloatArray,
                  q_out: FloatArray) -> int:
     """``Ukf._propagate`` whole: the nominal attitude's step, the predict, the attitude folded
@@ -264,7 +318,7 @@ def predict_step(x: FloatArray, P: FloatArray, Q: FloatArray, dt: float, gyro: F
     q_next_inv[0] = q_tmp[0]
     q_next_inv[1], q_next_inv[2], q_next_inv[3] = -q_tmp[1], -q_tmp[2], -q_tmp[3]
     if not predict(x, P, Q, dt, gyro, accel, q_ref, q_next_inv, gravity_w, Wm, Wc, scale, sig,
-                   work, U, dev, x_out, P_out):
+                   work, U, devT, x_out, P_out):
         return 1
     _mul_exp_normalized(q_tmp, x_out[6], x_out[7], x_out[8], q_out)
     x_out[6] = x_out[7] = x_out[8] = 0.0
@@ -284,10 +338,9 @@ def update_step(x: FloatArray, P: FloatArray, q_ref: FloatArray, z: FloatArray, 
     """``Ukf._fuse`` before its gate: the update and -> (status, NIS). Status 0: finite, the
     attitude folded into ``q_out`` and P conditioned; 1: P not positive definite (nothing
     written); 2: not finite (returned as it is, for the caller's gate to refuse)."""
-    if not update(x, P, z, R, meas_idx, Wm, Wc, scale, sig, work, U, x_out, P_out, y_out,
-                  S_out):
+    nis = update(x, P, z, R, meas_idx, Wm, Wc, scale, sig, work, U, x_out, P_out, y_out, S_out)
+    if nis < 0.0:
         return 1, math.nan
-    nis = float(y_out @ np.linalg.solve(S_out, y_out))
     if not _finite(x_out, P_out):
         return 2, nis
     _mul_exp_normalized(q_ref, x_out[6], x_out[7], x_out[8], q_out)

@@ -194,7 +194,7 @@ class CompiledKernel:
         self.gravity_w = np.ascontiguousarray(gravity_w, dtype=np.float64)
         m = 2 * n + 1
         self._sig = np.empty((m, n))
-        self._dev = np.empty((m, n))
+        self._dev = np.empty((n, m))      # deviations, transposed (compiled._mean_cov)
         self._work = np.empty((n, n))
         self._U = np.empty((n, n))
         self._meas_idx = MEAS_IDX.astype(np.int64)
@@ -249,7 +249,7 @@ class CompiledKernel:
                ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         n = self.n
         x_out, P_out, y, S = np.empty(n), np.empty((n, n)), np.empty(6), np.empty((6, 6))
-        if not compiled.update(x, P, z, R, self._meas_idx, self.Wm, self.Wc, self.scale,
-                               self._sig, self._work, self._U, x_out, P_out, y, S):
+        if compiled.update(x, P, z, R, self._meas_idx, self.Wm, self.Wc, self.scale,
+                           self._sig, self._work, self._U, x_out, P_out, y, S) < 0.0:
             raise np.linalg.LinAlgError("covariance not positive definite")
         return x_out, P_out, y, S

@@ -268,6 +268,7 @@ class Ukf:
         self._q_ref = np.array([1.0, 0.0, 0.0, 0.0])
         self._prev_gyro: FloatArray | None = None
         self._prev_accel: FloatArray | None = None
+        self._prev_f = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))     # the same, as floats
         self._last_gyro = np.zeros(3)
         self._nonfinite = False
         # history ring: the state after each predict and the input that led to it
@@ -281,16 +282,16 @@ class Ukf:
         self._hist_head = 0
         self._hist_len = 0
         # force observer (isotropic variance: the accelerometer noise is isotropic)
-        self._force_w = np.zeros(3)
+        self._force_w: Vec3Tuple = (0.0, 0.0, 0.0)
         self._force_var = cfg.init_force_sigma_n ** 2
-        self._force_produced_b: FloatArray | None = None   # lagged command
+        self._force_produced_b: Vec3Tuple | None = None   # lagged command
         # fusion horizon and output predictor: IMU inputs newer than the filter's time wait
         # here, each with the output state (mean only) propagated to its time
         self._pending = _OutputPredictor(cfg.gravity_m_s2,
                                          2 * math.ceil(cfg.max_fusion_delay_s
                                                        * cfg.max_imu_rate_hz) + 8)
         self._now_s = math.nan
-        self._latencies = np.full(cfg.latency_window, np.inf)
+        self._latencies = [math.inf] * cfg.latency_window
         self._latency_i = 0
         self._delay_s = 0.0
         # bookkeeping
@@ -367,7 +368,10 @@ class Ukf:
         gyro = np.asarray(gyro_rad_s, dtype=np.float64)
         accel = np.asarray(accel_m_s2, dtype=np.float64)
         t = float(imu_t_s)
-        if not math.isfinite(t + float(gyro.sum()) + float(accel.sum())):
+        # plain floats: a numpy sum per check costs more than the six additions
+        gx, gy, gz = gyro.tolist()
+        ax, ay, az = accel.tolist()
+        if not math.isfinite(t + gx + gy + gz + ax + ay + az):
             self._imu_invalid += 1
             return
         if not self._initialized:
@@ -376,6 +380,7 @@ class Ukf:
                 return
             self._t_s = self._now_s = t
             self._prev_gyro, self._prev_accel, self._last_gyro = gyro, accel, gyro
+            self._prev_f = ((gx, gy, gz), (ax, ay, az))
             self._rest.add_imu(t, gyro, accel)
             self._try_initialize()
             return
@@ -385,11 +390,14 @@ class Ukf:
             return
         if self._prev_gyro is None or self._prev_accel is None:
             g_in, a_in = gyro, accel
-        elif self.cfg.imu_integration == "trapezoid":
-            g_in, a_in = 0.5 * (self._prev_gyro + gyro), 0.5 * (self._prev_accel + accel)
+        elif self.cfg.imu_integration == "trapezoid":   # floats: 4 numpy operations cost more
+            (pgx, pgy, pgz), (pax, pay, paz) = self._prev_f
+            g_in = np.array((0.5 * (pgx + gx), 0.5 * (pgy + gy), 0.5 * (pgz + gz)))
+            a_in = np.array((0.5 * (pax + ax), 0.5 * (pay + ay), 0.5 * (paz + az)))
         else:
             g_in, a_in = gyro, accel
         self._prev_gyro, self._prev_accel, self._last_gyro = gyro, accel, gyro
+        self._prev_f = ((gx, gy, gz), (ax, ay, az))
         self._now_s = t
         if self._delay_s == 0.0 and not self._pending:
             self._filter_step(t, dt, g_in, a_in)       # the filter is the output
@@ -456,7 +464,7 @@ class Ukf:
             t_s=self._now_s, pos_w_m=pos, vel_w_m_s=vel,
             q_wb=q, omega_b_rad_s=omega,
             gyro_bias_rad_s=x[GYRO_BIAS].copy(), accel_bias_m_s2=x[ACCEL_BIAS].copy(),
-            cov=self._P.copy(), force_ext_w_n=self._force_w.copy(),
+            cov=self._P.copy(), force_ext_w_n=np.array(self._force_w),
             force_ext_sigma_n=math.sqrt(self._force_var), health=self.health())
 
     @property
@@ -494,8 +502,8 @@ class Ukf:
     # -- propagation and fusion -----------------------------------------------------------------
     def _filter_step(self, t: float, dt: float, g_in: FloatArray, a_in: FloatArray) -> None:
         """One UKF predict of the filter itself, from its time to ``t``."""
-        x, P, q = self._propagate(self._x, self._P, self._q_ref, dt, g_in, a_in)
-        if not math.isfinite(float(x.sum()) + float(P.sum())):
+        x, P, q, finite = self._propagate(self._x, self._P, self._q_ref, dt, g_in, a_in)
+        if not finite:
             self._nonfinite = True          # keep the last finite state; a pose re-seeds it
             self._t_s = t
             return
@@ -515,20 +523,21 @@ class Ukf:
         lat = self._latencies
         lat[self._latency_i] = latency_s
         self._latency_i = (self._latency_i + 1) % len(lat)
-        self._delay_s = min(max(float(lat.min()), 0.0), self.cfg.max_fusion_delay_s)
+        self._delay_s = min(max(min(lat), 0.0), self.cfg.max_fusion_delay_s)
 
     def _queue_input(self, t: float, dt: float, g_in: FloatArray, a_in: FloatArray) -> None:
         pending = self._pending
         if pending.full():                          # IMU faster than configured: catch up
             self._advance_filter(pending.oldest_t_s())
-        x = self._x
+        xl = self._x.tolist()
         if pending:
             p0, v0, q0 = pending.newest()
         else:
-            xl = x[0:6].tolist()
             p0, v0, q0 = (xl[0], xl[1], xl[2]), (xl[3], xl[4], xl[5]), tuple(self._q_ref.tolist())
-        pending.push(t, dt, g_in, a_in, p0, v0, q0, (g_in - x[GYRO_BIAS]).tolist(),
-                     (a_in - x[ACCEL_BIAS]).tolist())
+        gx, gy, gz = g_in.tolist()
+        ax, ay, az = a_in.tolist()
+        pending.push(t, dt, g_in, a_in, p0, v0, q0, (gx - xl[9], gy - xl[10], gz - xl[11]),
+                     (ax - xl[12], ay - xl[13], az - xl[14]))
 
     def _advance_filter(self, t_target_s: float) -> None:
         """Consume the queued inputs up to ``t_target_s`` into the filter; re-base the outputs."""
@@ -596,7 +605,9 @@ class Ukf:
 
     def _propagate(self, x: FloatArray, P: FloatArray, q_ref: FloatArray, dt: float,
                    gyro: FloatArray, accel: FloatArray
-                   ) -> tuple[FloatArray, FloatArray, FloatArray]:
+                   ) -> tuple[FloatArray, FloatArray, FloatArray, bool]:
+        """One predict -> (x, P, q_ref, finite); ``finite`` false: x or P has a non-finite
+        entry (the caller keeps its last finite state)."""
         # 1 ns resolution, so that the repeated IMU period hits the cached Q and F
         dt = round(dt, 9)
         step = self._step_kernel
@@ -610,15 +621,16 @@ class Ukf:
                                         cfg.min_variance, cap)
                 if out is None:
                     raise np.linalg.LinAlgError("covariance not positive definite")
-            return out[0], out[1], out[2]
+            return out
         q_next = mul_exp_single(q_ref, (gyro - x[GYRO_BIAS]) * dt)
         args = (self._process_noise(dt), dt, gyro, accel, q_ref, quat_conj(q_next))
         try:
             x1, P1 = self._kernel.predict(x, P, *args)
         except np.linalg.LinAlgError:
             x1, P1 = self._kernel.predict(x, self._repair_spd(P), *args)
+        finite = math.isfinite(float(x1.sum()) + float(P1.sum()))
         q1 = self._fold_attitude(x1, q_next)
-        return x1, self._condition(P1), q1
+        return x1, self._condition(P1), q1, finite
 
     def _fuse(self, x: FloatArray, P: FloatArray, q_ref: FloatArray, pos: FloatArray,
               q_m: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray] | None:
@@ -699,7 +711,7 @@ class Ukf:
             k -= 1
             i = (self._hist_head - k) % n_hist
             dt = float(self._hist_t[i] - self._hist_t[(i - 1) % n_hist])
-            x, P, q = self._propagate(x, P, q, dt, self._hist_gyro[i], self._hist_accel[i])
+            x, P, q, _ = self._propagate(x, P, q, dt, self._hist_gyro[i], self._hist_accel[i])
             self._store(x, P, q, i)
         p_r, v_r, q_r = self._x[POS].tolist(), self._x[VEL].tolist(), self._q_ref.tolist()
         self._x, self._P, self._q_ref = x, P, q
@@ -816,23 +828,28 @@ class Ukf:
         if force_cmd_b_n is None:
             return
         m = cfg.mass_kg
-        f_cmd = np.asarray(force_cmd_b_n, dtype=np.float64)
-        if not math.isfinite(float(f_cmd.sum())):
+        # plain floats throughout: a dozen small numpy operations cost more than the maths
+        fx, fy, fz = np.asarray(force_cmd_b_n, dtype=np.float64).tolist()
+        if not math.isfinite(fx + fy + fz):
             return
         if cfg.force_cmd_lag_s > 0.0:
             if self._force_produced_b is None:
-                self._force_produced_b = f_cmd.copy()
+                self._force_produced_b = (fx, fy, fz)
             else:   # exact discretisation of the first-order lag over dt
                 blend = 1.0 - math.exp(-dt / cfg.force_cmd_lag_s)
-                self._force_produced_b = self._force_produced_b + blend * (
-                    f_cmd - self._force_produced_b)
-            f_cmd = self._force_produced_b
-        z = np.array(rotate_tuple(self._output_q(),
-                                  (m * (accel - self._x[ACCEL_BIAS]) - f_cmd).tolist()))
+                px, py, pz = self._force_produced_b
+                self._force_produced_b = (px + blend * (fx - px), py + blend * (fy - py),
+                                          pz + blend * (fz - pz))
+            fx, fy, fz = self._force_produced_b
+        ax, ay, az = accel.tolist()
+        bx, by, bz = self._x[ACCEL_BIAS].tolist()
+        zx, zy, zz = rotate_tuple(self._output_q(), (m * (ax - bx) - fx, m * (ay - by) - fy,
+                                                     m * (az - bz) - fz))
         # per-sample accelerometer noise variance (N^2 f / 2) plus the bias uncertainty
         P = self._P
         r = m * m * (TWO_SIDED * cfg.accel_noise_m_s2_sqrt_hz ** 2 / dt
                      + (P.item(12, 12) + P.item(13, 13) + P.item(14, 14)) / 3.0)
         gain = self._force_var / (self._force_var + r)
-        self._force_w += gain * (z - self._force_w)
+        wx, wy, wz = self._force_w
+        self._force_w = (wx + gain * (zx - wx), wy + gain * (zy - wy), wz + gain * (zz - wz))
         self._force_var *= 1.0 - gain

@@ -56,7 +56,7 @@ def test_that_the_jitted_loops_equal_their_python_source() -> None:
     outs = []
     py_func = compiled.predict_step.py_func  # type: ignore[attr-defined]
     for fn in (compiled.predict_step, py_func):
-        bufs = (np.empty((31, 15)), np.empty((15, 15)), np.empty((15, 15)), np.empty((31, 15)),
+        bufs = (np.empty((31, 15)), np.empty((15, 15)), np.empty((15, 15)), np.empty((15, 31)),
                 np.empty(4), np.empty(15), np.empty((15, 15)), np.empty(4))
         status = fn(x, P, Q, 0.002, gyro, accel, q, GRAVITY_W, k.Wm, k.Wc, k.scale, 1e-12,
                     0.25, *bufs)
