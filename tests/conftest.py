@@ -67,6 +67,7 @@ LONG_SHARED_MODULES = (
     "integration/test_fly_mavlink.py",
     "integration/test_dashboard.py",
     "integration/test_takeoff_on_estimate.py",
+    "integration/test_fly_1khz.py",
 )
 
 

@@ -107,8 +107,10 @@ def fly_long_hover_in_this_process(tmp: str) -> None:
                   echo_events=False).run()
 
 
-def fly_shipped_session(tmp_path: Path, session: str, seed: int = 1) -> SessionOutcome:
-    """One of the shipped emulated sessions (the paper's experiments), lockstep, no dashboard."""
+def fly_shipped_session(tmp_path: Path, session: str, seed: int = 1,
+                        requests: tuple[tuple[float, str], ...] = ()) -> SessionOutcome:
+    """One of the shipped emulated sessions (the paper's experiments), lockstep, no dashboard;
+    ``requests``: operator requests at session times (s), e.g. ``((20.0, "land"),)``."""
     from dataclasses import replace
 
     from config import find_config
@@ -120,7 +122,7 @@ def fly_shipped_session(tmp_path: Path, session: str, seed: int = 1) -> SessionO
     params = load_vehicle(resolve_reference(path, cfg.vehicle))
     mission = Mission(load_mission(resolve_reference(path, cfg.mission)))
     return FlightSession(cfg, params, mission, record_path=tmp_path / f"{session}.fhr",
-                         echo_events=False, dashboard="off").run()
+                         echo_events=False, dashboard="off", scripted_requests=requests).run()
 
 
 PaperFlight = tuple[list["FlightState"], "FlightRecord", dict[str, float]]

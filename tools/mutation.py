@@ -300,6 +300,7 @@ def run_tests(work: Path, tests: tuple[str, ...], timeout_s: float,
         return "survived", dt
     if proc.returncode == 5:  # nothing collected: a broken selection, not a kill
         raise SystemExit(f"mutation: no tests collected for {tests}")
+    run_tests.last_output = proc.stdout[-3000:]  # type: ignore[attr-defined]
     return "killed", dt
 
 
@@ -358,7 +359,8 @@ def main(argv: list[str] | None = None) -> int:
             verdict, dt = run_tests(works[0], tests, args.timeout, target.noconftest)
             if verdict != "survived":
                 raise SystemExit(f"mutation: the unmutated tests of {target.name} do not pass "
-                                 f"({verdict}); fix them first")
+                                 f"({verdict}); fix them first\n"
+                                 f"{getattr(run_tests, 'last_output', '')}")
             print(f"  baseline passes in {dt:.1f} s", flush=True)
             original = (works[0] / target.path).read_text()
             free: queue.Queue[Path] = queue.Queue()

@@ -1,0 +1,240 @@
+"""The speed table: every figure the campaigns and the 1 kHz loop depend on, each with the
+baseline it is judged against, measured in the same run.
+
+- UKF predict + update (sum of the medians; 15 error states, MoCap 10 ms late, the default
+  fusion horizon) against stock filterpy running the same logic: <= 40 us and >= 20x.
+- Tick compute p50 of a lockstep flight through the byte path against the tick's numerics
+  alone (UKF predict, a pose every 5th tick, the estimate, the controller; no I/O): <= 1.5x.
+- Lockstep flight through the byte path, sim s per wall s (against ``simulate``, truth, of
+  the same mission: no bytes, no second process): >= 10x real time.
+- ``fasthex simulate --estimator ukf``: >= 30x; ``fasthex simulate`` (truth + noise): >= 60x.
+- Realtime 1 kHz emulated session against the same at 500 Hz: misses < 0.1 %, compute p99
+  < 0.5 ms, position error no worse.
+
+The per-tick breakdown (medians, us): the simulator's physics step, the truth+noise state
+source, the UKF (predict, and the update spread over the ticks), the controller, the record
+row; it says where a simulated tick goes.
+
+Run: ``python benchmarks/bench_speed.py [--realtime-s 60] [--skip-realtime]``; the realtime
+pair flies Exp. 1's first ``--realtime-s`` seconds at 500 Hz and at 1 kHz, back to back.
+Machines are noisy (2 shared cores here): compare the ratios, not the absolute figures.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import bench_ukf  # the UKF flights and their timing
+
+from controller.missions import Mission
+from controller.pipeline import FlightComputer
+from controller.reference import VehicleState
+from estimator import EstimatorConfig, Ukf
+from groundstation.configs import load_disturbances, load_mission, load_vehicle
+from groundstation.metrics import flight_metrics
+from groundstation.record import read_record
+from groundstation.session import FlightSession, SessionOutcome
+from groundstation.session_config import load_session
+from sim_backend.closed_loop import TruthPlusNoise, UkfStateSource
+from sim_backend.simulator import FastHexSimulator
+
+ROOT = Path(__file__).resolve().parents[1]
+EXP1 = "exp1-hover-tilt-steps"
+
+
+def row(figure: str, value: str, baseline: str, ratio: str, target: str, met: bool) -> None:
+    print(f"| {figure} | {value} | {baseline} | {ratio} | {target} | "
+          f"{'yes' if met else 'NOT met'} |", flush=True)
+
+
+def ukf_figures(seconds: float) -> tuple[float, float, float]:
+    """(fast predict+update, stock predict+update, largest estimate difference)."""
+    sc = bench_ukf.scenario(seconds, 0.010, False)
+    rows, worst = bench_ukf.compare(sc, seconds, min(seconds, 4.0), "UKF, 10 ms late")
+    fast, stock = sum(rows["fast"]), sum(rows["filterpy"])
+    return fast, stock, worst
+
+
+def tick_breakdown(n: int = 4000) -> dict[str, float]:
+    """Medians (us) of each part of one in-process simulated tick, on Exp. 1's hover."""
+    params = load_vehicle("fasthex")
+    mission = Mission(load_mission(EXP1, vehicle=params))
+    preset = load_disturbances("paper-calibrated")
+    sim = FastHexSimulator(params, preset, seed=1, start_pos_w_m=mission.start_pos_w_m,
+                           start_q_wb=mission.start_q_wb)
+    truth = TruthPlusNoise(sim.state, preset, np.random.default_rng(1))
+    computer = FlightComputer(params, mission)
+    ukf = UkfStateSource(params.mass_kg, params.gravity_m_s2)
+    parts: dict[str, list[int]] = {k: [] for k in
+                                   ("physics", "truth source", "ukf", "controller")}
+    clock = time.perf_counter_ns
+    dt = 0.002
+    for k in range(n):
+        t = 5.0 + k * dt                # past the take-off: hovering
+        t0 = clock()
+        imu = sim.read_imu()
+        poses = sim.poll_mocap()
+        est = truth.update(t, imu, poses)
+        t1 = clock()
+        ukf.update(t, imu, poses)      # the estimate is not flown: truth keeps the hover
+        t2 = clock()
+        tick = computer.step(t, est, sim.tilt_rad())
+        sim.command_rotor_speeds_hz(tick.cmd.spin_hz)
+        t3 = clock()
+        sim.advance(dt)
+        t4 = clock()
+        parts["truth source"].append(t1 - t0)
+        parts["ukf"].append(t2 - t1)
+        parts["controller"].append(t3 - t2)
+        parts["physics"].append(t4 - t3)
+    return {k: float(np.median(v[200:])) / 1e3 for k, v in parts.items()}
+
+
+def simulate_speed(estimator: str, duration_s: float | None) -> float:
+    """``fasthex simulate`` as a user runs it: sim s per wall s of the flight (start-up
+    excluded, as the command reports it)."""
+    cmd = [sys.executable, "-m", "groundstation", "simulate", EXP1, "--estimator", estimator,
+           "--json"]
+    if duration_s is not None:
+        cmd += ["--duration", str(duration_s)]
+    out = subprocess.run(cmd, capture_output=True, text=True, check=True, cwd=ROOT)
+    return float(json.loads(out.stdout)["sim_s_per_wall_s"])
+
+
+SESSION = """\
+schema: fasthex.session
+version: 1
+name: bench-speed
+vehicle: fasthex
+mission: {mission}
+backend:
+  kind: emulated
+  clock: {clock}
+  seed: 1
+  disturbances: paper-calibrated
+  imu_rate_hz: {rate}
+estimator:
+  force_cmd_lag_s: 0.03
+telemetry:
+  rerun: "off"
+"""
+
+
+def fly(tmp: Path, clock: str, rate_hz: float, duration_s: float | None) -> SessionOutcome:
+    name = f"{clock}-{rate_hz:.0f}"
+    mission = load_mission(EXP1)
+    path = tmp / f"{name}.yaml"
+    path.write_text(SESSION.format(mission=EXP1, clock=clock, rate=rate_hz))
+    cfg = load_session(path)
+    m = Mission(mission)
+    requests: tuple[tuple[float, str], ...] = ()
+    if duration_s is not None:      # the first duration_s of Exp. 1, then a landing
+        requests = ((duration_s, "land"),)
+    return FlightSession(cfg, load_vehicle("fasthex"), m, record_path=tmp / f"{name}.fhr",
+                         echo_events=False, scripted_requests=requests).run()
+
+
+def numerics_baseline(n: int = 3000) -> float:
+    """Median (us) of a tick's numerics alone: UKF predict (+ a pose every 5th tick, as at
+    100 Hz MoCap) and the controller, in-process, no I/O."""
+    params = load_vehicle("fasthex")
+    computer = FlightComputer(params, Mission(load_mission(EXP1, vehicle=params)))
+    ukf = Ukf(replace(EstimatorConfig(), mass_kg=params.mass_kg))
+    ukf.initialize(0.0, (0.0, 0.0, 1.0), (1.0, 0.0, 0.0, 0.0))
+    out = np.empty(n)
+    for k in range(n):
+        t = 0.002 * (k + 1)
+        t0 = time.perf_counter_ns()
+        ukf.predict(t, (0.0, 0.0, 0.0), (0.0, 0.0, 9.81))
+        if k % 5 == 0:
+            ukf.update_pose(t - 0.004, (0.0, 0.0, 1.0), (1.0, 0.0, 0.0, 0.0))
+        e = ukf.estimate()
+        p, v, q, w = (e.pos_w_m.tolist(), e.vel_w_m_s.tolist(), e.q_wb.tolist(),
+                      e.omega_b_rad_s.tolist())
+        computer.step(5.0 + t, VehicleState((p[0], p[1], p[2]), (v[0], v[1], v[2]),
+                                            (q[0], q[1], q[2], q[3]), (w[0], w[1], w[2])),
+                      0.0)
+        out[k] = (time.perf_counter_ns() - t0) / 1e3
+    return float(np.median(out[200:]))
+
+
+def pos_err_mm(record_path: Path) -> float:
+    """Mean position error (mm) over the flight's measured phases, as ``report`` computes."""
+    rows = read_record(record_path).rows
+    params = load_vehicle("fasthex")
+    m = flight_metrics(rows, min_spin_hz=params.rotors.min_spin_hz,
+                       max_spin_hz=params.rotors.max_spin_hz)
+    return float(m["all_pos_err_mean_mm"])
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--ukf-seconds", type=float, default=20.0)
+    ap.add_argument("--realtime-s", type=float, default=60.0,
+                    help="seconds of Exp. 1 flown in realtime at 500 Hz and at 1 kHz")
+    ap.add_argument("--skip-realtime", action="store_true")
+    args = ap.parse_args()
+
+    fast, stock, worst = ukf_figures(args.ukf_seconds)
+    parts = tick_breakdown()
+    base_us = numerics_baseline()
+    sim_truth = simulate_speed("truth", None)
+    sim_ukf = simulate_speed("ukf", None)
+    with tempfile.TemporaryDirectory(prefix="fasthex-speed-") as d:
+        tmp = Path(d)
+        lock = fly(tmp, "lockstep", 500.0, None)
+        rt = {} if args.skip_realtime else {
+            rate: fly(tmp, "realtime", rate, args.realtime_s) for rate in (500.0, 1000.0)}
+        errs = {r: pos_err_mm(o.record_path) for r, o in rt.items()}
+
+    print("\nper simulated tick (medians, us): " + ", ".join(
+        f"{k} {v:.1f}" for k, v in parts.items()))
+    print(f"UKF estimates, fast vs stock filterpy: largest difference {worst:.2e}")
+    print("\n| figure | now | baseline (same run) | ratio | target | met |")
+    print("|---|---|---|---|---|---|")
+    row("UKF predict + update, medians", f"{fast:.1f} us", f"stock {stock:.1f} us",
+        f"{stock / fast:.1f}x", "<= 40 us, >= 20x", fast <= 40.0 and stock / fast >= 20.0)
+    t = lock.result.timing
+    lock_x = (lock.result.ticks / 500.0) / lock.result.loop_wall_s
+    row("tick compute p50 (lockstep, byte path)", f"{t.compute_p50_ms * 1e3:.0f} us",
+        f"numerics {base_us:.0f} us", f"{t.compute_p50_ms * 1e3 / base_us:.2f}x", "<= 1.5x",
+        t.compute_p50_ms * 1e3 <= 1.5 * base_us)
+    row("lockstep flight, byte path", f"{lock_x:.1f}x real time",
+        f"simulate truth {sim_truth:.1f}x", f"{lock_x / sim_truth:.2f}", ">= 10x",
+        lock_x >= 10.0)
+    row("simulate --estimator ukf", f"{sim_ukf:.1f}x real time",
+        f"truth {sim_truth:.1f}x", f"{sim_ukf / sim_truth:.2f}", ">= 30x", sim_ukf >= 30.0)
+    row("simulate (truth + noise)", f"{sim_truth:.1f}x real time",
+        "physics {:.0f} + controller {:.0f} us/tick".format(parts["physics"],
+                                                            parts["controller"]),
+        "", ">= 60x", sim_truth >= 60.0)
+    if rt:
+        a, b = rt[500.0].result, rt[1000.0].result
+        ta, tb = a.timing, b.timing
+        ea, eb = errs[500.0], errs[1000.0]
+        row("realtime 1 kHz session", f"misses {100 * tb.miss_fraction:.3f} %, compute p99 "
+            f"{tb.compute_p99_ms:.3f} ms, e_p {eb:.2f} mm",
+            f"500 Hz: misses {100 * ta.miss_fraction:.3f} %, p99 {ta.compute_p99_ms:.3f} ms, "
+            f"e_p {ea:.2f} mm", f"p99 {tb.compute_p99_ms / ta.compute_p99_ms:.2f}x",
+            "< 0.1 %, < 0.5 ms, e_p <= 500 Hz",
+            tb.miss_fraction < 0.001 and tb.compute_p99_ms < 0.5 and eb <= ea * 1.1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
