@@ -87,7 +87,7 @@ def _list(uri: str) -> int:
         if isinstance(dev, NatNetClient):
             info = dev.server_info
             assert info is not None and dev.models is not None
-            dev.wait_frames(50, 2.0)
+            dev.wait_for_rate(2.0)
             st = dev.stats()
             print(f"{info.app_name} {'.'.join(map(str, info.app_version))}, NatNet "
                   f"{'.'.join(map(str, dev.version or ()))}, "
@@ -97,7 +97,7 @@ def _list(uri: str) -> int:
             if not dev.models.rigid_bodies:
                 print("  (no rigid bodies defined)")
         else:
-            dev.wait_frames(20, 1.0)
+            dev.wait_for_rate(2.0)
             st = dev.stats()
             for name in dev.trackers():
                 print(f"  {name}  ({st.rate_hz:.0f} Hz on the configured sensor)")
