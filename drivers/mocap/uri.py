@@ -11,10 +11,12 @@ Forms (options are query parameters; defaults in brackets):
     ``range_m`` the workspace radius beyond which a pose is dropped as implausible [100].
     Example: ``natnet://127.0.0.1?local=127.0.0.1&mode=unicast&body=fasthex``.
 
-``vrpn://TRACKER@HOST[:PORT]?sensor=N&up=y|z&units=m|mm&latency_ms=F&stale_ms=F&range_m=F``
+``vrpn://TRACKER@HOST[:PORT]?sensor=N&up=y|z&units=m|mm&latency_ms=F&stale_ms=F&range_m=F&handshake=auto|classic|tcp``
     A VRPN tracker (Vicon Tracker, Motive, QTM). ``PORT`` [3883]; ``sensor`` [0]; ``up`` [z];
     ``units`` [m]; ``latency_ms`` the system latency to subtract [0]; ``stale_ms`` after which
-    a silent tracker is reported missing [50]; ``range_m`` as for NatNet [100]. Example: ``vrpn://Tracker0@127.0.0.1:3883``.
+    a silent tracker is reported missing [50]; ``range_m`` as for NatNet [100]; ``handshake``
+    [auto: the classic UDP request and call-back, then direct TCP after 1 s]. Example:
+    ``vrpn://Tracker0@127.0.0.1:3883``.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from drivers.mocap.vrpn_client import VrpnClient, VrpnConfig
 NATNET_FORM = ("natnet://SERVER[:PORT]?local=IP&mode=unicast|multicast&data_port=N&group=IP"
                "&body=NAME&version=X.Y&up=y|z&units=m|mm&delay_ms=F&range_m=F")
 VRPN_FORM = ("vrpn://TRACKER@HOST[:PORT]?sensor=N&up=y|z&units=m|mm&latency_ms=F&stale_ms=F"
-             "&range_m=F")
+             "&range_m=F&handshake=auto|classic|tcp")
 
 
 class MocapUriError(ValueError):
@@ -81,7 +83,7 @@ def parse_uri(uri: str) -> NatNetConfig | VrpnConfig:
                 frames=_frames(opts, "y"), limits=_limits(opts))
         if parts.scheme == "vrpn":
             opts = _options(parts.query, {"sensor", "up", "units", "latency_ms", "stale_ms",
-                                          "range_m"}, uri, VRPN_FORM)
+                                          "range_m", "handshake"}, uri, VRPN_FORM)
             if not parts.username or not parts.hostname:
                 raise MocapUriError(f"{uri}: needs TRACKER@HOST; expected {VRPN_FORM}")
             d2 = VrpnConfig()
@@ -90,7 +92,8 @@ def parse_uri(uri: str) -> NatNetConfig | VrpnConfig:
                 sensor=int(opts.get("sensor", 0)),
                 latency_s=float(opts.get("latency_ms", 0.0)) / 1000.0,
                 stale_after_s=float(opts.get("stale_ms", d2.stale_after_s * 1000)) / 1000.0,
-                frames=_frames(opts, "z"), limits=_limits(opts))
+                frames=_frames(opts, "z"), limits=_limits(opts),
+                handshake=opts.get("handshake", d2.handshake))  # type: ignore[arg-type]
     except (ConfigValueError, ValueError) as exc:
         if isinstance(exc, MocapUriError):
             raise

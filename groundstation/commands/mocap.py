@@ -37,7 +37,9 @@ URI_HELP = """MoCap URIs:
       network; unicast (default) or multicast (group 239.255.42.99, data port 1511);
       version = bitstream to request (unicast only); up = streaming up axis (default y).
   vrpn://TRACKER@HOST[:PORT]?sensor=N&up=y|z&units=m|mm&latency_ms=F&stale_ms=F
-      a VRPN tracker (Vicon Tracker, Motive, QTM), port 3883, up axis z by default.
+           &handshake=auto|classic|tcp
+      a VRPN tracker (Vicon Tracker, Motive, QTM), port 3883, up axis z by default;
+      handshake: the classic UDP request and call-back, then direct TCP after 1 s (auto).
 examples:
   fasthex mocap list  "natnet://127.0.0.1?local=127.0.0.1&mode=unicast"
   fasthex mocap watch "natnet://192.168.1.10?local=192.168.1.20&mode=multicast" --body fasthex

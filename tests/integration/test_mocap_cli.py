@@ -73,6 +73,16 @@ def test_that_an_unknown_body_is_a_one_line_user_error(capsys: pytest.CaptureFix
     assert "no rigid body named 'nope'" in err and "fasthex" in err and "Traceback" not in err
 
 
+def test_that_watching_an_unknown_vrpn_tracker_ends_with_the_names_the_server_announces(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    with VrpnServer(BenchVehicle(), VrpnEmulatorConfig(port=0, tracker_name="fasthex")) as srv:
+        rc = main(["mocap", "watch", f"vrpn://Tracker0@127.0.0.1:{srv.port}", "--frames", "10"])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "no tracker named 'Tracker0'" in err and "it announces fasthex" in err
+    assert "Traceback" not in err
+
+
 def test_that_an_invalid_sample_is_shown_as_such_without_a_pose() -> None:
     stats = MocapStats(10, 0, 0, 1, 0, 0, 100.0, 0.02, 0.004)
     nan3 = (float("nan"),) * 3

@@ -34,6 +34,12 @@ def test_that_a_vrpn_uri_names_tracker_host_and_port_and_defaults_to_z_up() -> N
     assert (cfg.tracker, cfg.host, cfg.port, cfg.sensor) == ("Tracker0", "127.0.0.1", 3884, 2)
     assert cfg.latency_s == pytest.approx(0.008) and cfg.stale_after_s == pytest.approx(0.03)
     assert cfg.frames.up_axis == "z"
+    assert cfg.handshake == "auto"  # the classic UDP request, then direct TCP
+
+
+def test_that_a_vrpn_uri_can_choose_the_handshake() -> None:
+    cfg = parse_uri("vrpn://Tracker0@127.0.0.1?handshake=tcp")
+    assert isinstance(cfg, VrpnConfig) and cfg.handshake == "tcp"
 
 
 @pytest.mark.parametrize("uri,fragment", [
@@ -44,6 +50,7 @@ def test_that_a_vrpn_uri_names_tracker_host_and_port_and_defaults_to_z_up() -> N
     ("natnet://not-an-ip", "IPv4"),
     ("vrpn://127.0.0.1", "TRACKER@HOST"),
     ("vrpn://T@127.0.0.1?sensor=one", "one"),
+    ("vrpn://T@127.0.0.1?handshake=udp", "handshake"),
     ("qtm://127.0.0.1", "unknown scheme"),
 ])
 def test_that_a_bad_uri_is_a_typed_error_naming_it(uri: str, fragment: str) -> None:
