@@ -2,8 +2,10 @@
 
 - ``list``: the rigid bodies the server defines (NatNet: name, id, marker count) or the
   trackers it announces (VRPN), with the server's name, version and stream rate.
-- ``watch [--body NAME]``: one live terminal line with the world-frame pose (m, deg), the
-  measured rate, the latency, the age and the dropped/invalid counts. Ctrl-C ends it.
+- ``watch [--body NAME] [--interval S] [--frames N]``: one live terminal line with the
+  world-frame pose (m, deg), the measured rate, the latency, the age and the dropped/invalid
+  counts, refreshed every ``--interval`` seconds (on a fixed grid: a late line does not shift
+  the next ones); ``--frames N`` prints a last line once N frames arrived. Ctrl-C ends it.
 
 URIs (see :mod:`drivers.mocap.uri`)::
 
@@ -19,11 +21,12 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import time
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from drivers.mocap.natnet_client import NatNetClient
-    from drivers.mocap.pose import MocapStats, PoseSample
+    from drivers.mocap.pose import FrameWaits, MocapStats, PoseSample
     from drivers.mocap.vrpn_client import VrpnClient
 
 NAME = "mocap"
@@ -127,20 +130,49 @@ def format_status(sample: PoseSample | None, stats: MocapStats) -> str:
             f"{p[2]:+7.3f}] m  rpy [{roll:+6.1f} {pitch:+6.1f} {yaw:+7.1f}] deg  {head}")
 
 
+class WatchPacer:
+    """The clock ``watch`` prints by and how it waits between lines (wall time; a test swaps in
+    one that steps an emulator in lockstep)."""
+
+    def now_s(self) -> float:
+        return time.monotonic()
+
+    def wait(self, dev: FrameWaits, until_frames: int, timeout_s: float) -> None:
+        """Wait ``timeout_s``, or less once ``until_frames`` frames arrived (0: no target)."""
+        if until_frames:
+            dev.wait_for_total(until_frames, timeout_s)
+        else:
+            time.sleep(timeout_s)
+
+
+PACER = WatchPacer()
+
+
 def _watch(args: argparse.Namespace) -> int:
+    if not args.interval > 0.0:
+        from groundstation.cli import UserError
+        raise UserError(f"--interval must be > 0 s, got {args.interval:g}")
     dev = _open(args.uri, args.body)
     tty = sys.stdout.isatty()
+    pacer = PACER
     try:
+        next_line_s = pacer.now_s()
         while True:
-            dev.wait_frames(1, args.interval)
-            line = format_status(dev.latest(), dev.stats())
-            if tty:
-                sys.stdout.write("\r\x1b[K" + line)
-            else:
-                sys.stdout.write(line + "\n")
-            sys.stdout.flush()
-            if args.frames and dev.stats().frames_received >= args.frames:
+            done = bool(args.frames) and dev.frames_seen >= args.frames
+            now_s = pacer.now_s()
+            if done or now_s >= next_line_s:
+                line = format_status(dev.latest(), dev.stats())
+                if tty:
+                    sys.stdout.write("\r\x1b[K" + line)
+                else:
+                    sys.stdout.write(line + "\n")
+                sys.stdout.flush()
+                # the next slot of the grid after now: a late line does not shift the others
+                next_line_s += args.interval * (math.floor((now_s - next_line_s)
+                                                           / args.interval) + 1)
+            if done:
                 break
+            pacer.wait(dev, args.frames, next_line_s - now_s)
     except KeyboardInterrupt:
         pass
     finally:
