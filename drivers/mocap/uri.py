@@ -2,11 +2,13 @@
 
 Forms (options are query parameters; defaults in brackets):
 
-``natnet://SERVER[:COMMAND_PORT]?local=IP&mode=unicast|multicast&data_port=N&group=IP&body=NAME&version=X.Y&up=y|z&units=m|mm&delay_ms=F&range_m=F``
+``natnet://SERVER[:COMMAND_PORT]?local=IP&mode=unicast|multicast&data_port=N&group=IP&body=NAME&version=X.Y&require_version=0|1&up=y|z&units=m|mm&delay_ms=F&range_m=F``
     OptiTrack Motive. ``SERVER`` is the Motive PC, ``COMMAND_PORT`` [1510]; ``local`` is this
     PC's address on the MoCap network [127.0.0.1]; ``mode`` [unicast]; ``data_port`` [1511] and
     ``group`` [239.255.42.99] for multicast; ``body`` the rigid-body name [the first defined];
-    ``version`` a bitstream to request (unicast only) [the server's]; ``up`` the streaming up
+    ``version`` a bitstream to request (unicast only) [the server's]; a request the server
+    does not confirm in its SERVERINFO is a warning, or an error with ``require_version=1``
+    [0]; ``up`` the streaming up
     axis [y]; ``units`` [m]; ``delay_ms`` the network delay added to the reported latency [0];
     ``range_m`` the workspace radius beyond which a pose is dropped as implausible [100].
     Example: ``natnet://127.0.0.1?local=127.0.0.1&mode=unicast&body=fasthex``.
@@ -32,7 +34,8 @@ from drivers.mocap.pose import PoseLimits
 from drivers.mocap.vrpn_client import VrpnClient, VrpnConfig
 
 NATNET_FORM = ("natnet://SERVER[:PORT]?local=IP&mode=unicast|multicast&data_port=N&group=IP"
-               "&body=NAME&version=X.Y&up=y|z&units=m|mm&delay_ms=F&range_m=F")
+               "&body=NAME&version=X.Y&require_version=0|1&up=y|z&units=m|mm&delay_ms=F"
+               "&range_m=F")
 VRPN_FORM = ("vrpn://TRACKER@HOST[:PORT]?sensor=N&up=y|z&units=m|mm&latency_ms=F&stale_ms=F"
              "&range_m=F&handshake=auto|classic|tcp")
 
@@ -54,6 +57,13 @@ def _frames(opts: dict[str, str], default_up: str) -> FrameConfig:
                        units=opts.get("units", "m"))  # type: ignore[arg-type]
 
 
+def _flag(opts: dict[str, str], key: str) -> bool:
+    value = opts.get(key, "0")
+    if value not in ("0", "1"):
+        raise ValueError(f"{key} must be 0 or 1, not {value!r}")
+    return value == "1"
+
+
 def _limits(opts: dict[str, str]) -> PoseLimits:
     if "range_m" not in opts:
         return PoseLimits()
@@ -66,9 +76,8 @@ def parse_uri(uri: str) -> NatNetConfig | VrpnConfig:
     try:
         if parts.scheme == "natnet":
             opts = _options(parts.query, {"local", "mode", "data_port", "group", "body",
-                                          "version", "up", "units", "delay_ms", "range_m"},
-                            uri,
-                            NATNET_FORM)
+                                          "version", "require_version", "up", "units",
+                                          "delay_ms", "range_m"}, uri, NATNET_FORM)
             if not parts.hostname:
                 raise MocapUriError(f"{uri}: no server address; expected {NATNET_FORM}")
             d = NatNetConfig()
@@ -79,6 +88,7 @@ def parse_uri(uri: str) -> NatNetConfig | VrpnConfig:
                 data_port=int(opts.get("data_port", d.data_port)),
                 multicast_group=opts.get("group", d.multicast_group),
                 body=opts.get("body", ""), version=opts.get("version", ""),
+                require_version=_flag(opts, "require_version"),
                 network_delay_s=float(opts.get("delay_ms", 0.0)) / 1000.0,
                 frames=_frames(opts, "y"), limits=_limits(opts))
         if parts.scheme == "vrpn":

@@ -35,10 +35,12 @@ HELP = "list MoCap rigid bodies or watch one live (NatNet or VRPN URI)"
 
 URI_HELP = """MoCap URIs:
   natnet://SERVER[:PORT]?local=IP&mode=unicast|multicast&data_port=N&group=IP&body=NAME
-           &version=X.Y&up=y|z&units=m|mm&delay_ms=F
+           &version=X.Y&require_version=0|1&up=y|z&units=m|mm&delay_ms=F
       OptiTrack Motive; PORT = command port (1510); local = this PC's address on the MoCap
       network; unicast (default) or multicast (group 239.255.42.99, data port 1511);
-      version = bitstream to request (unicast only); up = streaming up axis (default y).
+      version = bitstream to request (unicast only; the server's SERVERINFO must confirm
+      it, else its own version is read with a warning, or require_version=1 fails);
+      up = streaming up axis (default y).
   vrpn://TRACKER@HOST[:PORT]?sensor=N&up=y|z&units=m|mm&latency_ms=F&stale_ms=F
            &handshake=auto|classic|tcp
       a VRPN tracker (Vicon Tracker, Motive, QTM), port 3883, up axis z by default;
