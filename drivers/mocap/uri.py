@@ -19,6 +19,12 @@ Forms (options are query parameters; defaults in brackets):
     a silent tracker is reported missing [50]; ``range_m`` as for NatNet [100]; ``handshake``
     [auto: the classic UDP request and call-back, then direct TCP after 1 s]. Example:
     ``vrpn://Tracker0@127.0.0.1:3883``.
+
+``motioncapture://SYSTEM?host=HOST&body=NAME&up=y|z&units=m|mm&latency_ms=F&stale_ms=F&range_m=F``
+    Any system libmotioncapture reads (optional extra ``fasthex[motioncapture]``): ``vicon``
+    (Vicon DataStream), ``optitrack``, ``qualisys``, ``vrpn`` (``host`` as ``HOST:PORT``).
+    ``up`` [z; y for optitrack]; the other options as for VRPN. Example:
+    ``motioncapture://vicon?host=192.168.1.5&body=fasthex``.
 """
 
 from __future__ import annotations
@@ -29,6 +35,11 @@ from urllib.parse import parse_qs, urlsplit
 
 from config.schema import ConfigValueError
 from drivers.mocap.frames import FrameConfig
+from drivers.mocap.motioncapture_client import (
+    SYSTEM_UP_AXIS,
+    MotionCaptureClient,
+    MotionCaptureConfig,
+)
 from drivers.mocap.natnet_client import NatNetClient, NatNetConfig
 from drivers.mocap.pose import PoseLimits
 from drivers.mocap.vrpn_client import VrpnClient, VrpnConfig
@@ -38,6 +49,8 @@ NATNET_FORM = ("natnet://SERVER[:PORT]?local=IP&mode=unicast|multicast&data_port
                "&range_m=F")
 VRPN_FORM = ("vrpn://TRACKER@HOST[:PORT]?sensor=N&up=y|z&units=m|mm&latency_ms=F&stale_ms=F"
              "&range_m=F&handshake=auto|classic|tcp")
+MOTIONCAPTURE_FORM = ("motioncapture://vicon|optitrack|qualisys|vrpn?host=HOST&body=NAME"
+                      "&up=y|z&units=m|mm&latency_ms=F&stale_ms=F&range_m=F")
 
 
 class MocapUriError(ValueError):
@@ -70,8 +83,9 @@ def _limits(opts: dict[str, str]) -> PoseLimits:
     return PoseLimits(max_range_m=float(opts["range_m"]))
 
 
-def parse_uri(uri: str) -> NatNetConfig | VrpnConfig:
-    """Parse a ``natnet://`` or ``vrpn://`` URI. Raises :class:`MocapUriError`."""
+def parse_uri(uri: str) -> NatNetConfig | VrpnConfig | MotionCaptureConfig:
+    """Parse a ``natnet://``, ``vrpn://`` or ``motioncapture://`` URI. Raises
+    :class:`MocapUriError`."""
     parts = urlsplit(uri)
     try:
         if parts.scheme == "natnet":
@@ -104,16 +118,26 @@ def parse_uri(uri: str) -> NatNetConfig | VrpnConfig:
                 stale_after_s=float(opts.get("stale_ms", d2.stale_after_s * 1000)) / 1000.0,
                 frames=_frames(opts, "z"), limits=_limits(opts),
                 handshake=opts.get("handshake", d2.handshake))  # type: ignore[arg-type]
+        if parts.scheme == "motioncapture":
+            opts = _options(parts.query, {"host", "body", "up", "units", "latency_ms",
+                                          "stale_ms", "range_m"}, uri, MOTIONCAPTURE_FORM)
+            system = parts.hostname or ""
+            d3 = MotionCaptureConfig
+            return MotionCaptureConfig(
+                system=system, host=opts.get("host", ""), body=opts.get("body", ""),
+                latency_s=float(opts.get("latency_ms", 0.0)) / 1000.0,
+                stale_after_s=float(opts.get("stale_ms", d3.stale_after_s * 1000)) / 1000.0,
+                frames=_frames(opts, SYSTEM_UP_AXIS.get(system, "z")), limits=_limits(opts))
     except (ConfigValueError, ValueError) as exc:
         if isinstance(exc, MocapUriError):
             raise
         raise MocapUriError(f"{uri}: {exc}") from exc
-    raise MocapUriError(f"{uri}: unknown scheme {parts.scheme!r}; expected {NATNET_FORM} or "
-                        f"{VRPN_FORM}")
+    raise MocapUriError(f"{uri}: unknown scheme {parts.scheme!r}; expected {NATNET_FORM}, "
+                        f"{VRPN_FORM} or {MOTIONCAPTURE_FORM}")
 
 
 def open_pose_source(uri: str, clock: Callable[[], int] | None = None,
-                     **overrides: object) -> NatNetClient | VrpnClient:
+                     **overrides: object) -> NatNetClient | VrpnClient | MotionCaptureClient:
     """An unstarted device for ``uri`` (call ``start()`` or use it as a context manager).
 
     ``overrides`` replace config fields (e.g. ``body="fasthex"`` or ``frames=...``).
@@ -127,4 +151,6 @@ def open_pose_source(uri: str, clock: Callable[[], int] | None = None,
     kwargs = {} if clock is None else {"clock": clock}
     if isinstance(cfg, NatNetConfig):
         return NatNetClient(cfg, **kwargs)
+    if isinstance(cfg, MotionCaptureConfig):
+        return MotionCaptureClient(cfg) if clock is None else MotionCaptureClient(cfg, clock)
     return VrpnClient(cfg, **kwargs)

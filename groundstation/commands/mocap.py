@@ -12,6 +12,7 @@ URIs (see :mod:`drivers.mocap.uri`)::
     natnet://127.0.0.1?local=127.0.0.1&mode=unicast           Motive, unicast on this PC
     natnet://192.168.1.10?local=192.168.1.20&mode=multicast   Motive on the lab network
     vrpn://Tracker0@127.0.0.1:3883                             VRPN tracker (Vicon, QTM)
+    motioncapture://vicon?host=192.168.1.5&body=fasthex      Vicon through libmotioncapture
 
 Try it against the emulated vehicle: ``fasthex emulate`` prints the MoCap URI to use.
 """
@@ -25,12 +26,13 @@ import time
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from drivers.mocap.motioncapture_client import MotionCaptureClient
     from drivers.mocap.natnet_client import NatNetClient
     from drivers.mocap.pose import FrameWaits, MocapStats, PoseSample
     from drivers.mocap.vrpn_client import VrpnClient
 
 NAME = "mocap"
-HELP = "list MoCap rigid bodies or watch one live (NatNet or VRPN URI)"
+HELP = "list MoCap rigid bodies or watch one live (NatNet, VRPN or motioncapture URI)"
 
 
 URI_HELP = """MoCap URIs:
@@ -45,6 +47,9 @@ URI_HELP = """MoCap URIs:
            &handshake=auto|classic|tcp
       a VRPN tracker (Vicon Tracker, Motive, QTM), port 3883, up axis z by default;
       handshake: the classic UDP request and call-back, then direct TCP after 1 s (auto).
+  motioncapture://vicon|optitrack|qualisys|vrpn?host=HOST&body=NAME&up=y|z&units=m|mm
+      any system libmotioncapture reads (pip install "fasthex[motioncapture]"); Vicon's
+      DataStream this way; up axis z (y for optitrack).
 examples:
   fasthex mocap list  "natnet://127.0.0.1?local=127.0.0.1&mode=unicast"
   fasthex mocap watch "natnet://192.168.1.10?local=192.168.1.20&mode=multicast" --body fasthex
@@ -72,14 +77,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                          help="seconds between status lines (default 0.2)")
 
 
-def _open(uri: str, body: str = "") -> NatNetClient | VrpnClient:
+def _open(uri: str, body: str = "") -> NatNetClient | VrpnClient | MotionCaptureClient:
     from drivers.mocap.pose import MocapError
     from drivers.mocap.uri import MocapUriError, open_pose_source
     from groundstation.cli import UserError
 
     try:
-        dev = open_pose_source(uri, body=body) if body and uri.startswith("natnet") \
-            else open_pose_source(uri)
+        dev = open_pose_source(uri, body=body) \
+            if body and uri.startswith(("natnet:", "motioncapture:")) else open_pose_source(uri)
         dev.start()
     except (MocapUriError, MocapError) as exc:
         raise UserError(str(exc)) from exc
@@ -88,6 +93,7 @@ def _open(uri: str, body: str = "") -> NatNetClient | VrpnClient:
 
 def _list(uri: str) -> int:
     from drivers.mocap.natnet_client import NatNetClient
+    from drivers.mocap.vrpn_client import VrpnClient
 
     dev = _open(uri)
     try:
@@ -106,8 +112,10 @@ def _list(uri: str) -> int:
         else:
             dev.wait_for_rate(2.0)
             st = dev.stats()
-            for name in dev.trackers():
-                print(f"  {name}  ({st.rate_hz:.0f} Hz on the configured sensor)")
+            names = dev.trackers() if isinstance(dev, VrpnClient) else list(dev.bodies())
+            for name in names:
+                print(f"  {name}  ({st.rate_hz:.0f} Hz on the configured "
+                      f"{'sensor' if isinstance(dev, VrpnClient) else 'body'})")
     finally:
         dev.close()
     return 0
