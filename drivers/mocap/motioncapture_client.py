@@ -46,8 +46,6 @@ from typing import Any
 from config.schema import ConfigValueError
 from drivers.mocap.frames import FrameConfig, FrameTransform, Quat, Vec3
 from drivers.mocap.pose import (
-    NAN3,
-    NAN4,
     FrameWaits,
     MocapConnectError,
     MocapError,
@@ -196,15 +194,11 @@ class MotionCaptureClient(FrameWaits):
             return
         cfg = self.config
         t_ns = rx_t_ns - round(cfg.latency_s * 1e9)
-        pos_w, q_wb = NAN3, NAN4
-        if cfg.limits.wire_quat_ok(q_xyzw):
-            try:
-                pos_w, q_wb = self._transform.to_world(pos, q_xyzw)
-            except ValueError:
-                pos_w = NAN3
-        if not cfg.limits.position_ok(pos_w):
+        pose = cfg.limits.world_pose(self._transform, pos, q_xyzw)
+        if pose is None:
             self.monitor.count_implausible()
             return
+        pos_w, q_wb = pose
         with self._cond:
             self._frames_seen += 1
             sample = PoseSample(t_ns, rx_t_ns, self._frames_seen, 0, cfg.body,
@@ -221,8 +215,7 @@ class MotionCaptureClient(FrameWaits):
         if s is None:
             return None
         if (self._clock() - s.rx_t_ns) * 1e-9 > self.config.stale_after_s:
-            return PoseSample(s.t_ns, s.rx_t_ns, s.frame_number, s.body_id, s.body_name,
-                              TrackingStatus.MISSING, NAN3, NAN4, s.latency_s, math.nan)
+            return s.as_missing()
         return s
 
     def bodies(self) -> dict[str, int]:

@@ -407,15 +407,10 @@ class NatNetClient(FrameWaits):
             return PoseSample(t_ns, rx_t_ns, frame, body_id, name, TrackingStatus.INVALID,
                               NAN3, NAN4, latency_s, rb.mean_error_m)
         limits = self.config.limits
-        if not limits.wire_quat_ok(rb.q_xyzw) or not 0.0 <= rb.mean_error_m <= \
-                limits.max_range_m:
+        pose = limits.world_pose(self._transform, rb.pos, rb.q_xyzw)
+        if pose is None or not 0.0 <= rb.mean_error_m <= limits.max_range_m:
             return None
-        try:
-            pos, q = self._transform.to_world(rb.pos, rb.q_xyzw)
-        except ValueError:
-            return None
-        if not limits.position_ok(pos):
-            return None
+        pos, q = pose
         return PoseSample(t_ns, rx_t_ns, frame, body_id, name, TrackingStatus.OK,
                           pos, q, latency_s, rb.mean_error_m)
 

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 from config.schema import ConfigValueError
-from drivers.mocap.frames import Quat, Vec3
+from drivers.mocap.frames import FrameTransform, Quat, Vec3
 
 NAN3: Vec3 = (math.nan, math.nan, math.nan)
 NAN4: Quat = (math.nan, math.nan, math.nan, math.nan)
@@ -69,6 +69,12 @@ class PoseSample:
     def valid(self) -> bool:
         return self.status is TrackingStatus.OK
 
+    def as_missing(self) -> PoseSample:
+        """This sample's stamps with the body reported missing (a stale pose, never current)."""
+        return PoseSample(self.t_ns, self.rx_t_ns, self.frame_number, self.body_id,
+                          self.body_name, TrackingStatus.MISSING, NAN3, NAN4, self.latency_s,
+                          math.nan)
+
 
 @dataclass(frozen=True)
 class PoseLimits:
@@ -97,6 +103,17 @@ class PoseLimits:
     def position_ok(self, pos_w_m: Vec3) -> bool:
         r2 = pos_w_m[0] * pos_w_m[0] + pos_w_m[1] * pos_w_m[1] + pos_w_m[2] * pos_w_m[2]
         return r2 <= self.max_range_m * self.max_range_m  # False for NaN, inf
+
+    def world_pose(self, transform: FrameTransform, pos: Vec3,
+                   q_xyzw: tuple[float, float, float, float]) -> tuple[Vec3, Quat] | None:
+        """The wire pose in the world frame, or None if no rigid body can have it."""
+        if not self.wire_quat_ok(q_xyzw):
+            return None
+        try:
+            pos_w, q_wb = transform.to_world(pos, q_xyzw)
+        except ValueError:  # a zero or non-finite quaternion
+            return None
+        return (pos_w, q_wb) if self.position_ok(pos_w) else None
 
 
 @dataclass(frozen=True, slots=True)

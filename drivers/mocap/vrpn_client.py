@@ -357,15 +357,12 @@ class VrpnClient(FrameWaits):
         if report.q_xyzw == (0.0, 0.0, 0.0, 0.0):
             status = TrackingStatus.INVALID  # how some servers report a body they lost
         else:
-            if limits.wire_quat_ok(report.q_xyzw):
-                try:
-                    pos, q = self._transform.to_world(report.pos, report.q_xyzw)
-                except ValueError:
-                    pos = NAN3
-            if not limits.position_ok(pos):
+            pose = limits.world_pose(self._transform, report.pos, report.q_xyzw)
+            if pose is None:
                 # VRPN has no validity flag: a pose no body can have is a broken report.
                 self.monitor.count_implausible()
                 return
+            pos, q = pose
         self._frames_seen += 1
         self.monitor.on_frame(None, rx, lat)
         sample = PoseSample(t_ns, rx, self._frames_seen, report.sensor, self.config.tracker,
@@ -383,8 +380,7 @@ class VrpnClient(FrameWaits):
             return s
         now = self._clock()
         if (now - s.rx_t_ns) * 1e-9 > self.config.stale_after_s:
-            return PoseSample(s.t_ns, s.rx_t_ns, s.frame_number, s.body_id, s.body_name,
-                              TrackingStatus.MISSING, NAN3, NAN4, s.latency_s, math.nan)
+            return s.as_missing()
         return s
 
 
