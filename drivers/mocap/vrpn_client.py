@@ -5,7 +5,7 @@ Wire protocol: see :mod:`drivers.mocap.vrpn` (VRPN 07.x over TCP, big-endian).
 Connection (``handshake``, URI option ``handshake=auto|classic|tcp``):
 
 - ``classic``: the VRPN way. The client listens on an ephemeral TCP port of its address on
-  the route to the server, and lobs the UDP datagram ``"<that ip> <that port>\0"`` to the
+  the route to the server, and lobs the UDP datagram ``"<that ip> <that port>\\0"`` to the
   server's port (3883), again every ``LOB_PERIOD_S`` (UDP may be lost); the server connects
   back over TCP. Only a call-back from the server's address is accepted.
 - ``tcp``: a direct TCP connection to ``host:port`` (servers that accept one, such as the
@@ -22,6 +22,7 @@ maps the server's sender/type descriptions to names and turns every ``vrpn_Track
 report of the configured tracker and sensor into a world-frame
 :class:`~drivers.mocap.pose.PoseSample`. The client describes no UDP channel, so the server
 sends everything over the TCP connection.
+
 A stream that does not decode (impossible length, bad cookie) is counted as malformed and the
 connection is re-opened; a report with a short payload is counted and dropped.
 
@@ -178,7 +179,8 @@ class VrpnClient(FrameWaits):
             self._parser = vrpn.VrpnStreamParser()
             with self._cond:
                 self._senders, self._types = {}, {}
-            # The server describes its senders once it has our cookie: wait for ours.
+            # The server describes its senders once it has our cookie: wait for the
+            # configured tracker among them.
             deadline = time.monotonic() + cfg.connect_timeout_s
             while not self._parser.peer_version or cfg.tracker not in self._senders.values():
                 left = deadline - time.monotonic()

@@ -2,7 +2,7 @@
 
 Speaks VRPN 07.38 with the codec of :mod:`drivers.mocap.vrpn`. It accepts both ways a VRPN
 connection starts (``accept``): the classic handshake, where a client lobs the UDP connection
-request ``"<ip> <port>\0"`` to ``port`` (3883) and the server connects back to that TCP port
+request ``"<ip> <port>\\0"`` to ``port`` (3883) and the server connects back to that TCP port
 (the mainline VRPN client's way; only the host that asked is called back, once per
 listening port), and a direct TCP connection to ``port``. ``accept="classic"`` or ``"tcp"``
 emulates a server that only knows one of them; ``callbacks`` and ``direct_connections``
