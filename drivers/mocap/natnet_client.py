@@ -7,7 +7,12 @@ Connection sequence (``start()``, blocking, before the thread runs):
 1. a UDP command socket bound to ``(local_ip, 0)`` sends CONNECT to ``server_ip:command_port``
    (1510) and waits for SERVERINFO (retrying every 0.25 s until ``connect_timeout_s``); the
    NatNet version and the high-resolution clock frequency come from there;
-2. optionally ``Bitstream,x.y`` (unicast only) to select the bitstream version;
+2. optionally ``Bitstream,x.y`` (unicast only) to select the bitstream version, then CONNECT
+   again: the version is the one the new SERVERINFO states, never the one asked for (a server
+   may answer the command with success and go on streaming its own). A request the server
+   refuses or does not confirm is a warning and the server's version is read, or, with
+   ``require_version``, a :class:`MocapConnectError` naming both versions. Frames that arrive
+   before the version is settled are ignored;
 3. REQUEST_MODELDEF: rigid-body names -> ids; an unknown configured body raises
    :class:`UnknownBodyError` listing the names the server has.
 
@@ -79,6 +84,7 @@ class NatNetConfig:
     multicast_group: str = natnet.DEFAULT_MULTICAST_GROUP
     body: str = ""  # rigid-body name; empty: the first one the server defines
     version: str = ""  # requested bitstream version ("3.1"); empty: the server's
+    require_version: bool = False  # a requested version the server does not confirm: fail
     network_delay_s: float = 0.0
     keepalive_period_s: float = 1.0
     connect_timeout_s: float = 3.0
@@ -142,6 +148,7 @@ class NatNetClient(FrameWaits):
         self._response: natnet.Response | natnet.UnrecognizedRequest | None = None
         self._frames_seen = 0
         self._next_keepalive = 0.0
+        self._handshaking = False  # frames are ignored until the version is settled
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -171,11 +178,14 @@ class NatNetClient(FrameWaits):
                                         "address of this host (the URI's local= option; "
                                         "`ip -br addr` lists them)") from exc
             raise MocapConnectError(cfg.name, f"cannot open sockets: {exc}") from exc
+        self._handshaking = True
         try:
             self._handshake()
         except BaseException:
             self.close()
             raise
+        finally:
+            self._handshaking = False
         self._stop.clear()
         for sock in (self._cmd, self._data):
             if sock is not None:
@@ -262,22 +272,44 @@ class NatNetClient(FrameWaits):
             raise MocapConnectError(cfg.name, f"server speaks NatNet {self._unsupported}; "
                                     f"supported: {natnet.SUPPORTED_VERSIONS}")
         if cfg.version and natnet.parse_version(cfg.version) != self._version:
-            if cfg.mode != "unicast":
-                raise MocapConnectError(cfg.name, "the bitstream version can only be changed "
-                                        "in unicast mode")
-            self._response = None
-            if not self._pump_until(lambda: self._response is not None, cfg.connect_timeout_s,
-                                    natnet.encode_command(f"Bitstream,{cfg.version}")):
-                raise MocapConnectError(cfg.name, "no answer to the Bitstream command")
-            if not isinstance(self._response, natnet.Response) or self._response.code != 0:
-                raise MocapConnectError(cfg.name, f"server refused bitstream {cfg.version}")
-            with self._cond:
-                self._version = natnet.parse_version(cfg.version)
+            self._request_version(natnet.parse_version(cfg.version))
         self._models = None
         if not self._pump_until(lambda: self._models is not None, cfg.connect_timeout_s,
                                 natnet.encode_request_modeldef()):
             raise MocapConnectError(cfg.name, "no MODELDEF answer")
         self._resolve_body()
+
+    def _request_version(self, wanted: natnet.NatNetVersion) -> None:
+        """Ask for bitstream ``wanted``; settle on the version the server then states."""
+        cfg = self.config
+        problem = ""
+        if cfg.mode != "unicast":
+            problem = "the bitstream version can only be changed in unicast mode"
+        else:
+            self._response = None
+            command = natnet.encode_command(f"Bitstream,{wanted[0]}.{wanted[1]}")
+            if not self._pump_until(lambda: self._response is not None, cfg.connect_timeout_s,
+                                    command):
+                problem = "no answer to the Bitstream command"
+            elif not isinstance(self._response, natnet.Response) or self._response.code != 0:
+                problem = "the server refused the Bitstream command"
+            else:
+                with self._cond:
+                    self._server_info = None  # the next SERVERINFO sets the version
+                if not self._pump_until(lambda: self._server_info is not None,
+                                        cfg.connect_timeout_s, natnet.encode_connect("ping")):
+                    raise MocapConnectError(cfg.name, "no SERVERINFO after the Bitstream "
+                                            "command")
+                if self._version != wanted:
+                    problem = "the server accepted the Bitstream command but still states " \
+                        "its own version"
+        if not problem:
+            return
+        text = f"NatNet {_dotted(wanted)} was requested, the server speaks " \
+            f"{_dotted(self._version)}: {problem}"
+        if cfg.require_version:
+            raise MocapConnectError(cfg.name, text)
+        log.warning("%s: %s; reading NatNet %s", cfg.name, text, _dotted(self._version))
 
     def _resolve_body(self) -> None:
         assert self._models is not None
@@ -333,6 +365,8 @@ class NatNetClient(FrameWaits):
             self.monitor.count_foreign()
             return
         rx_t_ns = self._clock()
+        if self._handshaking and data[:2] == _FRAME_ID:
+            return  # its version may not be settled yet
         try:
             msg = natnet.decode_message(data, self._version)
         except natnet.NatNetDecodeError as exc:
@@ -373,15 +407,10 @@ class NatNetClient(FrameWaits):
             return PoseSample(t_ns, rx_t_ns, frame, body_id, name, TrackingStatus.INVALID,
                               NAN3, NAN4, latency_s, rb.mean_error_m)
         limits = self.config.limits
-        if not limits.wire_quat_ok(rb.q_xyzw) or not 0.0 <= rb.mean_error_m <= \
-                limits.max_range_m:
+        pose = limits.world_pose(self._transform, rb.pos, rb.q_xyzw)
+        if pose is None or not 0.0 <= rb.mean_error_m <= limits.max_range_m:
             return None
-        try:
-            pos, q = self._transform.to_world(rb.pos, rb.q_xyzw)
-        except ValueError:
-            return None
-        if not limits.position_ok(pos):
-            return None
+        pos, q = pose
         return PoseSample(t_ns, rx_t_ns, frame, body_id, name, TrackingStatus.OK,
                           pos, q, latency_s, rb.mean_error_m)
 
@@ -482,6 +511,13 @@ class NatNetClient(FrameWaits):
     @property
     def models(self) -> natnet.ModelDefinitions | None:
         return self._models
+
+
+_FRAME_ID = int(natnet.MessageId.FRAMEOFDATA).to_bytes(2, "little")
+
+
+def _dotted(version: natnet.NatNetVersion | None) -> str:
+    return "?" if version is None else ".".join(map(str, version))
 
 
 def _open_multicast(cfg: NatNetConfig) -> socket.socket:

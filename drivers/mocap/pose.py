@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 from config.schema import ConfigValueError
-from drivers.mocap.frames import Quat, Vec3
+from drivers.mocap.frames import FrameTransform, Quat, Vec3
 
 NAN3: Vec3 = (math.nan, math.nan, math.nan)
 NAN4: Quat = (math.nan, math.nan, math.nan, math.nan)
@@ -36,6 +36,12 @@ NAN4: Quat = (math.nan, math.nan, math.nan, math.nan)
 #: A frame-number step larger than this (or backwards) is a discontinuity of the server's
 #: numbering (Motive restarted, timeline jumped), not a count of lost frames.
 MAX_FRAME_GAP = 1000
+
+#: The stream rate counts the frames that arrived in this last stretch of the injected clock.
+RATE_WINDOW_S = 1.0
+#: No rate is given before the stream is this old: two frames that arrive together (one TCP
+#: read, one burst off the network) would otherwise read as thousands of hertz.
+MIN_RATE_SPAN_S = 0.25
 
 
 class TrackingStatus(enum.Enum):
@@ -62,6 +68,12 @@ class PoseSample:
     @property
     def valid(self) -> bool:
         return self.status is TrackingStatus.OK
+
+    def as_missing(self) -> PoseSample:
+        """This sample's stamps with the body reported missing (a stale pose, never current)."""
+        return PoseSample(self.t_ns, self.rx_t_ns, self.frame_number, self.body_id,
+                          self.body_name, TrackingStatus.MISSING, NAN3, NAN4, self.latency_s,
+                          math.nan)
 
 
 @dataclass(frozen=True)
@@ -92,6 +104,17 @@ class PoseLimits:
         r2 = pos_w_m[0] * pos_w_m[0] + pos_w_m[1] * pos_w_m[1] + pos_w_m[2] * pos_w_m[2]
         return r2 <= self.max_range_m * self.max_range_m  # False for NaN, inf
 
+    def world_pose(self, transform: FrameTransform, pos: Vec3,
+                   q_xyzw: tuple[float, float, float, float]) -> tuple[Vec3, Quat] | None:
+        """The wire pose in the world frame, or None if no rigid body can have it."""
+        if not self.wire_quat_ok(q_xyzw):
+            return None
+        try:
+            pos_w, q_wb = transform.to_world(pos, q_xyzw)
+        except ValueError:  # a zero or non-finite quaternion
+            return None
+        return (pos_w, q_wb) if self.position_ok(pos_w) else None
+
 
 @dataclass(frozen=True, slots=True)
 class MocapStats:
@@ -103,7 +126,7 @@ class MocapStats:
     invalid_samples: int  # frames where the configured body was invalid or missing
     malformed_packets: int
     foreign_packets: int  # from an address other than the configured server
-    rate_hz: float  # measured over the last ``window`` frames; 0 before two frames
+    rate_hz: float  # frames per second over the last RATE_WINDOW_S; 0 until MIN_RATE_SPAN_S
     age_s: float  # now - capture time of the newest valid sample; inf if none
     latency_s: float  # of the newest frame; NaN if unknown
     implausible_samples: int = 0  # poses or frames outside PoseLimits, dropped
@@ -144,10 +167,14 @@ class UnknownBodyError(MocapError):
 class StreamMonitor:
     """Thread-safe counters and rate/age bookkeeping shared by the MoCap devices."""
 
-    def __init__(self, clock: Callable[[], int], window: int = 100) -> None:
+    def __init__(self, clock: Callable[[], int], rate_window_s: float = RATE_WINDOW_S,
+                 min_rate_span_s: float = MIN_RATE_SPAN_S) -> None:
         self._clock = clock
         self._lock = threading.Lock()
-        self._rx: deque[int] = deque(maxlen=window)
+        self._rate_window_ns = round(rate_window_s * 1e9)
+        self._min_rate_span_ns = round(min(min_rate_span_s, rate_window_s) * 1e9)
+        self._rx: deque[int] = deque()  # arrivals within the rate window (pruned on use)
+        self._first_rx_ns: int | None = None
         self._last_frame: int | None = None
         self.frames_received = 0
         self.frames_dropped = 0
@@ -181,7 +208,10 @@ class StreamMonitor:
         """Record one frame (``frame_number`` None for streams without numbering)."""
         with self._lock:
             self.frames_received += 1
+            if self._first_rx_ns is None:
+                self._first_rx_ns = rx_t_ns
             self._rx.append(rx_t_ns)
+            self._prune(rx_t_ns)
             self._latency_s = latency_s
             if frame_number is None:
                 return
@@ -201,12 +231,27 @@ class StreamMonitor:
             else:
                 self.invalid_samples += 1
 
+    def _prune(self, now_ns: int) -> None:
+        while self._rx and self._rx[0] <= now_ns - self._rate_window_ns:
+            self._rx.popleft()
+
+    def _rate_hz(self, now_ns: int) -> float:
+        """Frames per second over the window ending *now* (so a stream that stops reads a
+        falling rate); while the stream is younger than the window, over its whole life."""
+        if self._first_rx_ns is None:
+            return 0.0
+        self._prune(now_ns)
+        span_ns = now_ns - self._first_rx_ns
+        if span_ns < self._min_rate_span_ns:
+            return 0.0
+        if span_ns >= self._rate_window_ns:
+            return len(self._rx) * 1e9 / self._rate_window_ns
+        return (len(self._rx) - 1) * 1e9 / span_ns  # the first frame opens the span
+
     def snapshot(self) -> MocapStats:
         now = self._clock()
         with self._lock:
-            rate = 0.0
-            if len(self._rx) >= 2 and self._rx[-1] > self._rx[0]:
-                rate = (len(self._rx) - 1) * 1e9 / (self._rx[-1] - self._rx[0])
+            rate = self._rate_hz(now)
             age = math.inf if self._last_valid_t_ns is None \
                 else (now - self._last_valid_t_ns) * 1e-9
             return MocapStats(self.frames_received, self.frames_dropped, self.frame_jumps,
@@ -246,3 +291,14 @@ class FrameWaits:
     def wait_frames(self, count: int, timeout_s: float) -> bool:
         """Block until ``count`` more frames arrive after this call; False on timeout."""
         return self.wait_for_total(self._frames_seen + count, timeout_s)
+
+    def wait_for_rate(self, timeout_s: float) -> float:
+        """Block until the stream rate is measured (frames over ``MIN_RATE_SPAN_S``); returns
+        it, or 0.0 on timeout."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            rate = self.stats().rate_hz
+            left = deadline - time.monotonic()
+            if rate > 0.0 or left <= 0.0:
+                return rate
+            self.wait_frames(1, min(left, 0.05))

@@ -2,19 +2,29 @@
 
 Forms (options are query parameters; defaults in brackets):
 
-``natnet://SERVER[:COMMAND_PORT]?local=IP&mode=unicast|multicast&data_port=N&group=IP&body=NAME&version=X.Y&up=y|z&units=m|mm&delay_ms=F&range_m=F``
+``natnet://SERVER[:COMMAND_PORT]?local=IP&mode=unicast|multicast&data_port=N&group=IP&body=NAME&version=X.Y&require_version=0|1&up=y|z&units=m|mm&delay_ms=F&range_m=F``
     OptiTrack Motive. ``SERVER`` is the Motive PC, ``COMMAND_PORT`` [1510]; ``local`` is this
     PC's address on the MoCap network [127.0.0.1]; ``mode`` [unicast]; ``data_port`` [1511] and
     ``group`` [239.255.42.99] for multicast; ``body`` the rigid-body name [the first defined];
-    ``version`` a bitstream to request (unicast only) [the server's]; ``up`` the streaming up
+    ``version`` a bitstream to request (unicast only) [the server's]; a request the server
+    does not confirm in its SERVERINFO is a warning, or an error with ``require_version=1``
+    [0]; ``up`` the streaming up
     axis [y]; ``units`` [m]; ``delay_ms`` the network delay added to the reported latency [0];
     ``range_m`` the workspace radius beyond which a pose is dropped as implausible [100].
     Example: ``natnet://127.0.0.1?local=127.0.0.1&mode=unicast&body=fasthex``.
 
-``vrpn://TRACKER@HOST[:PORT]?sensor=N&up=y|z&units=m|mm&latency_ms=F&stale_ms=F&range_m=F``
+``vrpn://TRACKER@HOST[:PORT]?sensor=N&up=y|z&units=m|mm&latency_ms=F&stale_ms=F&range_m=F&handshake=auto|classic|tcp``
     A VRPN tracker (Vicon Tracker, Motive, QTM). ``PORT`` [3883]; ``sensor`` [0]; ``up`` [z];
     ``units`` [m]; ``latency_ms`` the system latency to subtract [0]; ``stale_ms`` after which
-    a silent tracker is reported missing [50]; ``range_m`` as for NatNet [100]. Example: ``vrpn://Tracker0@127.0.0.1:3883``.
+    a silent tracker is reported missing [50]; ``range_m`` as for NatNet [100]; ``handshake``
+    [auto: the classic UDP request and call-back, then direct TCP after 1 s]. Example:
+    ``vrpn://Tracker0@127.0.0.1:3883``.
+
+``motioncapture://SYSTEM?host=HOST&body=NAME&up=y|z&units=m|mm&latency_ms=F&stale_ms=F&range_m=F``
+    Any system libmotioncapture reads (optional extra ``fasthex[motioncapture]``): ``vicon``
+    (Vicon DataStream), ``optitrack``, ``qualisys``, ``vrpn`` (``host`` as ``HOST:PORT``).
+    ``up`` [z; y for optitrack]; the other options as for VRPN. Example:
+    ``motioncapture://vicon?host=192.168.1.5&body=fasthex``.
 """
 
 from __future__ import annotations
@@ -25,14 +35,22 @@ from urllib.parse import parse_qs, urlsplit
 
 from config.schema import ConfigValueError
 from drivers.mocap.frames import FrameConfig
+from drivers.mocap.motioncapture_client import (
+    SYSTEM_UP_AXIS,
+    MotionCaptureClient,
+    MotionCaptureConfig,
+)
 from drivers.mocap.natnet_client import NatNetClient, NatNetConfig
 from drivers.mocap.pose import PoseLimits
 from drivers.mocap.vrpn_client import VrpnClient, VrpnConfig
 
 NATNET_FORM = ("natnet://SERVER[:PORT]?local=IP&mode=unicast|multicast&data_port=N&group=IP"
-               "&body=NAME&version=X.Y&up=y|z&units=m|mm&delay_ms=F&range_m=F")
+               "&body=NAME&version=X.Y&require_version=0|1&up=y|z&units=m|mm&delay_ms=F"
+               "&range_m=F")
 VRPN_FORM = ("vrpn://TRACKER@HOST[:PORT]?sensor=N&up=y|z&units=m|mm&latency_ms=F&stale_ms=F"
-             "&range_m=F")
+             "&range_m=F&handshake=auto|classic|tcp")
+MOTIONCAPTURE_FORM = ("motioncapture://vicon|optitrack|qualisys|vrpn?host=HOST&body=NAME"
+                      "&up=y|z&units=m|mm&latency_ms=F&stale_ms=F&range_m=F")
 
 
 class MocapUriError(ValueError):
@@ -52,21 +70,28 @@ def _frames(opts: dict[str, str], default_up: str) -> FrameConfig:
                        units=opts.get("units", "m"))  # type: ignore[arg-type]
 
 
+def _flag(opts: dict[str, str], key: str) -> bool:
+    value = opts.get(key, "0")
+    if value not in ("0", "1"):
+        raise ValueError(f"{key} must be 0 or 1, not {value!r}")
+    return value == "1"
+
+
 def _limits(opts: dict[str, str]) -> PoseLimits:
     if "range_m" not in opts:
         return PoseLimits()
     return PoseLimits(max_range_m=float(opts["range_m"]))
 
 
-def parse_uri(uri: str) -> NatNetConfig | VrpnConfig:
-    """Parse a ``natnet://`` or ``vrpn://`` URI. Raises :class:`MocapUriError`."""
+def parse_uri(uri: str) -> NatNetConfig | VrpnConfig | MotionCaptureConfig:
+    """Parse a ``natnet://``, ``vrpn://`` or ``motioncapture://`` URI. Raises
+    :class:`MocapUriError`."""
     parts = urlsplit(uri)
     try:
         if parts.scheme == "natnet":
             opts = _options(parts.query, {"local", "mode", "data_port", "group", "body",
-                                          "version", "up", "units", "delay_ms", "range_m"},
-                            uri,
-                            NATNET_FORM)
+                                          "version", "require_version", "up", "units",
+                                          "delay_ms", "range_m"}, uri, NATNET_FORM)
             if not parts.hostname:
                 raise MocapUriError(f"{uri}: no server address; expected {NATNET_FORM}")
             d = NatNetConfig()
@@ -77,11 +102,12 @@ def parse_uri(uri: str) -> NatNetConfig | VrpnConfig:
                 data_port=int(opts.get("data_port", d.data_port)),
                 multicast_group=opts.get("group", d.multicast_group),
                 body=opts.get("body", ""), version=opts.get("version", ""),
+                require_version=_flag(opts, "require_version"),
                 network_delay_s=float(opts.get("delay_ms", 0.0)) / 1000.0,
                 frames=_frames(opts, "y"), limits=_limits(opts))
         if parts.scheme == "vrpn":
             opts = _options(parts.query, {"sensor", "up", "units", "latency_ms", "stale_ms",
-                                          "range_m"}, uri, VRPN_FORM)
+                                          "range_m", "handshake"}, uri, VRPN_FORM)
             if not parts.username or not parts.hostname:
                 raise MocapUriError(f"{uri}: needs TRACKER@HOST; expected {VRPN_FORM}")
             d2 = VrpnConfig()
@@ -90,17 +116,28 @@ def parse_uri(uri: str) -> NatNetConfig | VrpnConfig:
                 sensor=int(opts.get("sensor", 0)),
                 latency_s=float(opts.get("latency_ms", 0.0)) / 1000.0,
                 stale_after_s=float(opts.get("stale_ms", d2.stale_after_s * 1000)) / 1000.0,
-                frames=_frames(opts, "z"), limits=_limits(opts))
+                frames=_frames(opts, "z"), limits=_limits(opts),
+                handshake=opts.get("handshake", d2.handshake))  # type: ignore[arg-type]
+        if parts.scheme == "motioncapture":
+            opts = _options(parts.query, {"host", "body", "up", "units", "latency_ms",
+                                          "stale_ms", "range_m"}, uri, MOTIONCAPTURE_FORM)
+            system = parts.hostname or ""
+            d3 = MotionCaptureConfig
+            return MotionCaptureConfig(
+                system=system, host=opts.get("host", ""), body=opts.get("body", ""),
+                latency_s=float(opts.get("latency_ms", 0.0)) / 1000.0,
+                stale_after_s=float(opts.get("stale_ms", d3.stale_after_s * 1000)) / 1000.0,
+                frames=_frames(opts, SYSTEM_UP_AXIS.get(system, "z")), limits=_limits(opts))
     except (ConfigValueError, ValueError) as exc:
         if isinstance(exc, MocapUriError):
             raise
         raise MocapUriError(f"{uri}: {exc}") from exc
-    raise MocapUriError(f"{uri}: unknown scheme {parts.scheme!r}; expected {NATNET_FORM} or "
-                        f"{VRPN_FORM}")
+    raise MocapUriError(f"{uri}: unknown scheme {parts.scheme!r}; expected {NATNET_FORM}, "
+                        f"{VRPN_FORM} or {MOTIONCAPTURE_FORM}")
 
 
 def open_pose_source(uri: str, clock: Callable[[], int] | None = None,
-                     **overrides: object) -> NatNetClient | VrpnClient:
+                     **overrides: object) -> NatNetClient | VrpnClient | MotionCaptureClient:
     """An unstarted device for ``uri`` (call ``start()`` or use it as a context manager).
 
     ``overrides`` replace config fields (e.g. ``body="fasthex"`` or ``frames=...``).
@@ -114,4 +151,6 @@ def open_pose_source(uri: str, clock: Callable[[], int] | None = None,
     kwargs = {} if clock is None else {"clock": clock}
     if isinstance(cfg, NatNetConfig):
         return NatNetClient(cfg, **kwargs)
+    if isinstance(cfg, MotionCaptureConfig):
+        return MotionCaptureClient(cfg) if clock is None else MotionCaptureClient(cfg, clock)
     return VrpnClient(cfg, **kwargs)

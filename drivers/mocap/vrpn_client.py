@@ -2,10 +2,27 @@
 
 Wire protocol: see :mod:`drivers.mocap.vrpn` (VRPN 07.x over TCP, big-endian).
 
-``start()`` connects over TCP to ``host:port`` (3883), exchanges cookies (major version 07
-must match) and describes its own message types; the receive thread then maps the server's
-sender/type descriptions to names and turns every ``vrpn_Tracker Pos_Quat`` report of the
-configured tracker and sensor into a world-frame :class:`~drivers.mocap.pose.PoseSample`.
+Connection (``handshake``, URI option ``handshake=auto|classic|tcp``):
+
+- ``classic``: the VRPN way. The client listens on an ephemeral TCP port of its address on
+  the route to the server, and lobs the UDP datagram ``"<that ip> <that port>\\0"`` to the
+  server's port (3883), again every ``LOB_PERIOD_S`` (UDP may be lost); the server connects
+  back over TCP. Only a call-back from the server's address is accepted.
+- ``tcp``: a direct TCP connection to ``host:port`` (servers that accept one, such as the
+  mainline VRPN server; useful when a firewall blocks the call-back).
+- ``auto`` (default): classic for ``lob_timeout_s`` (1 s), then direct TCP for the rest of
+  ``connect_timeout_s`` (3 s). A classic server answers in milliseconds; a server that only
+  accepts direct TCP costs one ``lob_timeout_s`` per connection.
+
+On the connection both sides write their cookie (major version 07 must match); the client
+describes its own message types, then waits up to ``connect_timeout_s`` for the server to
+announce the configured tracker (sender) name: a tracker the server does not announce raises
+:class:`~drivers.mocap.pose.UnknownBodyError` listing the names it does. The receive thread then
+maps the server's sender/type descriptions to names and turns every ``vrpn_Tracker Pos_Quat``
+report of the configured tracker and sensor into a world-frame
+:class:`~drivers.mocap.pose.PoseSample`. The client describes no UDP channel, so the server
+sends everything over the TCP connection.
+
 A stream that does not decode (impossible length, bad cookie) is counted as malformed and the
 connection is re-opened; a report with a short payload is counted and dropped.
 
@@ -33,6 +50,7 @@ default Y-up export.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import socket
@@ -40,6 +58,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Literal
 
 from config.schema import ConfigValueError
 from drivers.clock_sync import ClockSync
@@ -50,13 +69,20 @@ from drivers.mocap.pose import (
     NAN4,
     FrameWaits,
     MocapConnectError,
+    MocapError,
     PoseLimits,
     PoseSample,
     StreamMonitor,
     TrackingStatus,
+    UnknownBodyError,
 )
 
 log = logging.getLogger(__name__)
+
+Handshake = Literal["auto", "classic", "tcp"]
+HANDSHAKES: tuple[Handshake, ...] = ("auto", "classic", "tcp")
+#: The classic connection request is repeated this often until the server calls back.
+LOB_PERIOD_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -70,6 +96,9 @@ class VrpnConfig:
     latency_s: float = 0.0
     stale_after_s: float = 0.05
     connect_timeout_s: float = 3.0
+    handshake: Handshake = "auto"
+    lob_timeout_s: float = 1.0  # auto: wait this long (at most connect_timeout_s) for the
+    # call-back, then connect over TCP directly
     frames: FrameConfig = field(default_factory=lambda: FrameConfig(up_axis="z"))
     limits: PoseLimits = field(default_factory=PoseLimits)
 
@@ -84,6 +113,11 @@ class VrpnConfig:
             raise ConfigValueError("sensor", "must be >= 0")
         if not self.latency_s >= 0.0 or not self.stale_after_s > 0.0:
             raise ConfigValueError("stale_after_s", "latency must be >= 0 and staleness > 0")
+        if self.handshake not in HANDSHAKES:
+            raise ConfigValueError("handshake", f"must be one of {', '.join(HANDSHAKES)}, not "
+                                   f"{self.handshake!r}")
+        if not self.lob_timeout_s > 0.0 or not self.connect_timeout_s > 0.0:
+            raise ConfigValueError("lob_timeout_s", "timeouts must be > 0")
 
     @property
     def name(self) -> str:
@@ -136,23 +170,32 @@ class VrpnClient(FrameWaits):
 
     def _connect(self) -> None:
         cfg = self.config
-        try:
-            sock = socket.create_connection((cfg.host, cfg.port), timeout=cfg.connect_timeout_s)
-        except OSError as exc:
-            raise MocapConnectError(cfg.name, f"cannot connect: {exc}") from exc
+        deadline = time.monotonic() + cfg.connect_timeout_s
+        sock = self._open_connection(deadline)
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         try:
             sock.sendall(vrpn.encode_cookie() + vrpn.encode_description(
                 vrpn.SystemType.TYPE_DESCRIPTION, 0, vrpn.POS_QUAT_TYPE))
             self._parser = vrpn.VrpnStreamParser()
-            self._senders, self._types = {}, {}
+            with self._cond:
+                self._senders, self._types = {}, {}
+            # The server describes its senders once it has our cookie: wait for the
+            # configured tracker among them.
             deadline = time.monotonic() + cfg.connect_timeout_s
-            while not self._parser.peer_version:
+            while not self._parser.peer_version or cfg.tracker not in self._senders.values():
                 left = deadline - time.monotonic()
                 if left <= 0.0:
-                    raise MocapConnectError(cfg.name, "no VRPN cookie from the server")
+                    if not self._parser.peer_version:
+                        raise MocapConnectError(cfg.name, "no VRPN cookie from the server")
+                    raise UnknownBodyError(
+                        cfg.name, f"the server announces no tracker named {cfg.tracker!r} "
+                        f"within {cfg.connect_timeout_s:g} s; it announces "
+                        f"{', '.join(self.trackers()) or 'none'}")
                 sock.settimeout(left)
-                chunk = sock.recv(4096)
+                try:
+                    chunk = sock.recv(4096)
+                except TimeoutError:
+                    continue  # the deadline check above names what is missing
                 if not chunk:
                     raise MocapConnectError(cfg.name, "server closed the connection")
                 self._handle(self._parser.feed(chunk))
@@ -162,11 +205,68 @@ class VrpnClient(FrameWaits):
         except OSError as exc:
             sock.close()
             raise MocapConnectError(cfg.name, f"handshake failed: {exc}") from exc
-        except MocapConnectError:
+        except MocapError:
             sock.close()
             raise
         sock.settimeout(0.1)
         self._sock = sock
+
+    def _open_connection(self, deadline: float) -> socket.socket:
+        """A TCP connection to the server, by the configured handshake (module docstring)."""
+        cfg = self.config
+        classic_error = ""
+        if cfg.handshake != "tcp":
+            window_s = cfg.connect_timeout_s if cfg.handshake == "classic" \
+                else min(cfg.lob_timeout_s, deadline - time.monotonic())
+            try:
+                return self._call_me_back(time.monotonic() + window_s)
+            except TimeoutError:
+                classic_error = f"no call-back to the UDP connection request within " \
+                    f"{window_s:.1f} s"
+            except OSError as exc:
+                classic_error = f"UDP connection request failed ({exc})"
+            if cfg.handshake == "classic":
+                raise MocapConnectError(cfg.name, f"{classic_error}; is a VRPN server "
+                                        "running there?")
+            log.info("%s: %s; trying direct TCP", cfg.name, classic_error)
+        try:
+            return socket.create_connection((cfg.host, cfg.port),
+                                            timeout=max(0.1, deadline - time.monotonic()))
+        except OSError as exc:
+            tried = f"{classic_error}; direct TCP: " if classic_error else ""
+            raise MocapConnectError(cfg.name, f"cannot connect: {tried}{exc}") from exc
+
+    def _call_me_back(self, deadline: float) -> socket.socket:
+        """The classic handshake: listen, lob ``"<ip> <port>\\0"`` to the server's UDP port,
+        accept the server's call-back. Raises OSError (TimeoutError when it never calls)."""
+        cfg = self.config
+        server_ip = socket.gethostbyname(cfg.host)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp, \
+                socket.socket(socket.AF_INET, socket.SOCK_STREAM) as listener:
+            udp.connect((server_ip, cfg.port))  # no packet: picks our address on the route
+            local_ip = udp.getsockname()[0]
+            listener.bind((local_ip, 0))
+            listener.listen(1)
+            lob = vrpn.encode_lob(local_ip, listener.getsockname()[1])
+            next_lob = 0.0
+            while True:
+                now = time.monotonic()
+                if now >= deadline:
+                    raise TimeoutError("the server did not call back")
+                if now >= next_lob:
+                    with contextlib.suppress(ConnectionRefusedError):  # ICMP of an earlier lob
+                        udp.send(lob)
+                    next_lob = now + LOB_PERIOD_S
+                listener.settimeout(max(1e-3, min(deadline, next_lob) - now))
+                try:
+                    conn, peer = listener.accept()
+                except TimeoutError:
+                    continue
+                if peer[0] == server_ip:
+                    conn.settimeout(None)
+                    return conn
+                log.warning("%s: refused a call-back from %s", cfg.name, peer[0])
+                conn.close()
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -175,7 +275,7 @@ class VrpnClient(FrameWaits):
                 try:
                     self._connect()
                     self.reconnects += 1
-                except MocapConnectError as exc:
+                except MocapError as exc:
                     log.debug("%s", exc)
                     self._stop.wait(0.5)
                 continue
@@ -259,15 +359,12 @@ class VrpnClient(FrameWaits):
         if report.q_xyzw == (0.0, 0.0, 0.0, 0.0):
             status = TrackingStatus.INVALID  # how some servers report a body they lost
         else:
-            if limits.wire_quat_ok(report.q_xyzw):
-                try:
-                    pos, q = self._transform.to_world(report.pos, report.q_xyzw)
-                except ValueError:
-                    pos = NAN3
-            if not limits.position_ok(pos):
+            pose = limits.world_pose(self._transform, report.pos, report.q_xyzw)
+            if pose is None:
                 # VRPN has no validity flag: a pose no body can have is a broken report.
                 self.monitor.count_implausible()
                 return
+            pos, q = pose
         self._frames_seen += 1
         self.monitor.on_frame(None, rx, lat)
         sample = PoseSample(t_ns, rx, self._frames_seen, report.sensor, self.config.tracker,
@@ -285,8 +382,7 @@ class VrpnClient(FrameWaits):
             return s
         now = self._clock()
         if (now - s.rx_t_ns) * 1e-9 > self.config.stale_after_s:
-            return PoseSample(s.t_ns, s.rx_t_ns, s.frame_number, s.body_id, s.body_name,
-                              TrackingStatus.MISSING, NAN3, NAN4, s.latency_s, math.nan)
+            return s.as_missing()
         return s
 
 

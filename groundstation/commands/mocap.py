@@ -2,14 +2,17 @@
 
 - ``list``: the rigid bodies the server defines (NatNet: name, id, marker count) or the
   trackers it announces (VRPN), with the server's name, version and stream rate.
-- ``watch [--body NAME]``: one live terminal line with the world-frame pose (m, deg), the
-  measured rate, the latency, the age and the dropped/invalid counts. Ctrl-C ends it.
+- ``watch [--body NAME] [--interval S] [--frames N]``: one live terminal line with the
+  world-frame pose (m, deg), the measured rate, the latency, the age and the dropped/invalid
+  counts, refreshed every ``--interval`` seconds (on a fixed grid: a late line does not shift
+  the next ones); ``--frames N`` prints a last line once N frames arrived. Ctrl-C ends it.
 
 URIs (see :mod:`drivers.mocap.uri`)::
 
     natnet://127.0.0.1?local=127.0.0.1&mode=unicast           Motive, unicast on this PC
     natnet://192.168.1.10?local=192.168.1.20&mode=multicast   Motive on the lab network
     vrpn://Tracker0@127.0.0.1:3883                             VRPN tracker (Vicon, QTM)
+    motioncapture://vicon?host=192.168.1.5&body=fasthex      Vicon through libmotioncapture
 
 Try it against the emulated vehicle: ``fasthex emulate`` prints the MoCap URI to use.
 """
@@ -19,25 +22,34 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import time
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from drivers.mocap.motioncapture_client import MotionCaptureClient
     from drivers.mocap.natnet_client import NatNetClient
-    from drivers.mocap.pose import MocapStats, PoseSample
+    from drivers.mocap.pose import FrameWaits, MocapStats, PoseSample
     from drivers.mocap.vrpn_client import VrpnClient
 
 NAME = "mocap"
-HELP = "list MoCap rigid bodies or watch one live (NatNet or VRPN URI)"
+HELP = "list MoCap rigid bodies or watch one live (NatNet, VRPN or motioncapture URI)"
 
 
 URI_HELP = """MoCap URIs:
   natnet://SERVER[:PORT]?local=IP&mode=unicast|multicast&data_port=N&group=IP&body=NAME
-           &version=X.Y&up=y|z&units=m|mm&delay_ms=F
+           &version=X.Y&require_version=0|1&up=y|z&units=m|mm&delay_ms=F
       OptiTrack Motive; PORT = command port (1510); local = this PC's address on the MoCap
       network; unicast (default) or multicast (group 239.255.42.99, data port 1511);
-      version = bitstream to request (unicast only); up = streaming up axis (default y).
+      version = bitstream to request (unicast only; the server's SERVERINFO must confirm
+      it, else its own version is read with a warning, or require_version=1 fails);
+      up = streaming up axis (default y).
   vrpn://TRACKER@HOST[:PORT]?sensor=N&up=y|z&units=m|mm&latency_ms=F&stale_ms=F
-      a VRPN tracker (Vicon Tracker, Motive, QTM), port 3883, up axis z by default.
+           &handshake=auto|classic|tcp
+      a VRPN tracker (Vicon Tracker, Motive, QTM), port 3883, up axis z by default;
+      handshake: the classic UDP request and call-back, then direct TCP after 1 s (auto).
+  motioncapture://vicon|optitrack|qualisys|vrpn?host=HOST&body=NAME&up=y|z&units=m|mm
+      any system libmotioncapture reads (pip install "fasthex[motioncapture]"); Vicon's
+      DataStream this way; up axis z (y for optitrack).
 examples:
   fasthex mocap list  "natnet://127.0.0.1?local=127.0.0.1&mode=unicast"
   fasthex mocap watch "natnet://192.168.1.10?local=192.168.1.20&mode=multicast" --body fasthex
@@ -65,14 +77,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                          help="seconds between status lines (default 0.2)")
 
 
-def _open(uri: str, body: str = "") -> NatNetClient | VrpnClient:
+def _open(uri: str, body: str = "") -> NatNetClient | VrpnClient | MotionCaptureClient:
     from drivers.mocap.pose import MocapError
     from drivers.mocap.uri import MocapUriError, open_pose_source
     from groundstation.cli import UserError
 
     try:
-        dev = open_pose_source(uri, body=body) if body and uri.startswith("natnet") \
-            else open_pose_source(uri)
+        dev = open_pose_source(uri, body=body) \
+            if body and uri.startswith(("natnet:", "motioncapture:")) else open_pose_source(uri)
         dev.start()
     except (MocapUriError, MocapError) as exc:
         raise UserError(str(exc)) from exc
@@ -81,13 +93,14 @@ def _open(uri: str, body: str = "") -> NatNetClient | VrpnClient:
 
 def _list(uri: str) -> int:
     from drivers.mocap.natnet_client import NatNetClient
+    from drivers.mocap.vrpn_client import VrpnClient
 
     dev = _open(uri)
     try:
         if isinstance(dev, NatNetClient):
             info = dev.server_info
             assert info is not None and dev.models is not None
-            dev.wait_frames(50, 2.0)
+            dev.wait_for_rate(2.0)
             st = dev.stats()
             print(f"{info.app_name} {'.'.join(map(str, info.app_version))}, NatNet "
                   f"{'.'.join(map(str, dev.version or ()))}, "
@@ -97,10 +110,12 @@ def _list(uri: str) -> int:
             if not dev.models.rigid_bodies:
                 print("  (no rigid bodies defined)")
         else:
-            dev.wait_frames(20, 1.0)
+            dev.wait_for_rate(2.0)
             st = dev.stats()
-            for name in dev.trackers():
-                print(f"  {name}  ({st.rate_hz:.0f} Hz on the configured sensor)")
+            names = dev.trackers() if isinstance(dev, VrpnClient) else list(dev.bodies())
+            for name in names:
+                print(f"  {name}  ({st.rate_hz:.0f} Hz on the configured "
+                      f"{'sensor' if isinstance(dev, VrpnClient) else 'body'})")
     finally:
         dev.close()
     return 0
@@ -125,20 +140,49 @@ def format_status(sample: PoseSample | None, stats: MocapStats) -> str:
             f"{p[2]:+7.3f}] m  rpy [{roll:+6.1f} {pitch:+6.1f} {yaw:+7.1f}] deg  {head}")
 
 
+class WatchPacer:
+    """The clock ``watch`` prints by and how it waits between lines (wall time; a test swaps in
+    one that steps an emulator in lockstep)."""
+
+    def now_s(self) -> float:
+        return time.monotonic()
+
+    def wait(self, dev: FrameWaits, until_frames: int, timeout_s: float) -> None:
+        """Wait ``timeout_s``, or less once ``until_frames`` frames arrived (0: no target)."""
+        if until_frames:
+            dev.wait_for_total(until_frames, timeout_s)
+        else:
+            time.sleep(timeout_s)
+
+
+PACER = WatchPacer()
+
+
 def _watch(args: argparse.Namespace) -> int:
+    if not args.interval > 0.0:
+        from groundstation.cli import UserError
+        raise UserError(f"--interval must be > 0 s, got {args.interval:g}")
     dev = _open(args.uri, args.body)
     tty = sys.stdout.isatty()
+    pacer = PACER
     try:
+        next_line_s = pacer.now_s()
         while True:
-            dev.wait_frames(1, args.interval)
-            line = format_status(dev.latest(), dev.stats())
-            if tty:
-                sys.stdout.write("\r\x1b[K" + line)
-            else:
-                sys.stdout.write(line + "\n")
-            sys.stdout.flush()
-            if args.frames and dev.stats().frames_received >= args.frames:
+            done = bool(args.frames) and dev.frames_seen >= args.frames
+            now_s = pacer.now_s()
+            if done or now_s >= next_line_s:
+                line = format_status(dev.latest(), dev.stats())
+                if tty:
+                    sys.stdout.write("\r\x1b[K" + line)
+                else:
+                    sys.stdout.write(line + "\n")
+                sys.stdout.flush()
+                # the next slot of the grid after now: a late line does not shift the others
+                next_line_s += args.interval * (math.floor((now_s - next_line_s)
+                                                           / args.interval) + 1)
+            if done:
                 break
+            pacer.wait(dev, args.frames, next_line_s - now_s)
     except KeyboardInterrupt:
         pass
     finally:

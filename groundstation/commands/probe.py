@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
                 ok = False
             try:
                 with open_pose_source(uris.mocap) as src:
-                    src.wait_frames(50, 5.0)
+                    src.wait_for_rate(5.0)
                     stats = src.stats()
                     bodies: dict[str, int] = getattr(src, "bodies", dict)()
                     print(f"mocap        {uris.mocap}: bodies {sorted(bodies) or '?'}, "

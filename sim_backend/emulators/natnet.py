@@ -3,10 +3,11 @@
 Speaks the real NatNet bitstream (3.0, 3.1, 4.0 or 4.1) over UDP, encoded with
 :mod:`drivers.mocap.natnet`, so any NatNet client can read it (``protocol-mocap-mavlink.md``
 §2): commands on ``command_port`` (CONNECT -> extended SERVERINFO, REQUEST_MODELDEF ->
-MODELDEF, KEEPALIVE, REQUEST ``Bitstream,x.y`` and other text commands -> RESPONSE 0,
-DISCONNECT); frames to every client that sent CONNECT/KEEPALIVE in the last
-``client_timeout_s`` (unicast) or to ``multicast_group:data_port`` on
-``multicast_interface`` (multicast; loopback by default, TTL 0: nothing leaves the machine).
+MODELDEF, KEEPALIVE, REQUEST ``Bitstream,x.y`` (switches the stream and SERVERINFO's version,
+unless ``honour_bitstream`` is False) and other text commands -> RESPONSE 0, DISCONNECT);
+frames to every client that sent CONNECT/KEEPALIVE in the last ``client_timeout_s``
+(unicast) or to ``multicast_group:data_port`` on ``multicast_interface`` (multicast; loopback
+by default, TTL 0: nothing leaves the machine).
 
 What a real system does to the stream is configurable: rate 100-360 Hz, Gaussian position and
 attitude noise, a system latency (frames are sent ``latency_s`` after their mid-exposure and
@@ -104,6 +105,8 @@ class NatNetEmulatorConfig:
     server_clock_drift_ppm: float = spec(0.0, ge=-50_000.0, le=50_000.0,
                                          doc="rate error of the server's clock")
     client_timeout_s: float = spec(10.0, gt=0.0)
+    honour_bitstream: bool = spec(True, doc="False: answer Bitstream,x.y with success but keep "
+                                  "streaming (and announcing) the configured version")
     app_name: str = "Motive"
     seed: int = 0
     frames: FrameConfig = field(default_factory=FrameConfig)
@@ -307,8 +310,9 @@ class NatNetServer:
                 version = natnet.parse_version(text.split(",", 1)[1])
             except ValueError:
                 return -1
-            with self._stream_lock:
-                self._version = version
+            if self.config.honour_bitstream:
+                with self._stream_lock:
+                    self._version = version
             return 0
         return 0  # TimelinePlay, TimelineStop, ...: accepted, nothing to do
 

@@ -1,9 +1,12 @@
 """Emulated VRPN tracker server (as exported by Vicon Tracker, Motive or QTM).
 
-Speaks VRPN 07.38 with the codec of :mod:`drivers.mocap.vrpn`: it listens on TCP ``port``
-(3883) for clients that connect directly, and on UDP ``port`` for connection requests
-("lobs": ``"<ip> <port>"``), after which it connects back to the client over TCP, as the
-mainline VRPN client expects. After the cookie exchange it describes its sender (the tracker
+Speaks VRPN 07.38 with the codec of :mod:`drivers.mocap.vrpn`. It accepts both ways a VRPN
+connection starts (``accept``): the classic handshake, where a client lobs the UDP connection
+request ``"<ip> <port>\\0"`` to ``port`` (3883) and the server connects back to that TCP port
+(the mainline VRPN client's way; only the host that asked is called back, once per
+listening port), and a direct TCP connection to ``port``. ``accept="classic"`` or ``"tcp"``
+emulates a server that only knows one of them; ``callbacks`` and ``direct_connections``
+count how clients came in. After the cookie exchange it describes its sender (the tracker
 name, e.g. ``Tracker0``) and message types, then streams ``vrpn_Tracker Pos_Quat`` reports of
 one sensor at ``rate_hz`` (server-clock timestamps, epoch seconds), answers
 ``vrpn_Base ping_message`` with a pong, and ignores everything else a client says.
@@ -25,10 +28,11 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
-from config.schema import spec
+from config.schema import ConfigValueError, spec
 from drivers.mocap import vrpn
 from drivers.mocap.frames import FrameConfig, FrameTransform, quat_from_axis_angle, quat_mul
 from sim_backend.vehicle import EmulatedVehicle
@@ -46,6 +50,8 @@ class VrpnEmulatorConfig:
 
     host: str = "127.0.0.1"
     port: int = spec(vrpn.DEFAULT_PORT, ge=0, le=65535, doc="TCP and UDP; 0 picks a free one")
+    accept: Literal["both", "classic", "tcp"] = spec(
+        "both", doc="connections: classic (UDP request, call-back), direct TCP, or both")
     tracker_name: str = "Tracker0"
     sensor: int = spec(0, ge=0)
     rate_hz: float = spec(100.0, ge=100.0, le=360.0)
@@ -61,10 +67,16 @@ class VrpnEmulatorConfig:
     server_clock_drift_ppm: float = spec(0.0, ge=-50_000.0, le=50_000.0,
                                          doc="rate error of the stamps' clock")
 
+    def __post_init__(self) -> None:
+        if self.accept not in ("both", "classic", "tcp"):
+            raise ConfigValueError("accept", f"must be both, classic or tcp, not {self.accept!r}")
+
 
 class _Conn:
-    def __init__(self, sock: socket.socket) -> None:
+    def __init__(self, sock: socket.socket, called_back: tuple[str, int] | None = None
+                 ) -> None:
         self.sock = sock
+        self.called_back = called_back  # the (ip, port) a connection request named
         self.parser = vrpn.VrpnStreamParser(expect_cookie=True)
         self.ready = False
         self.types: dict[int, str] = {}
@@ -93,6 +105,8 @@ class VrpnServer:
         self._threads: list[threading.Thread] = []
         self._occluded_left = 0
         self.reports_sent = 0
+        self.callbacks = 0  # clients connected back after their UDP connection request
+        self.direct_connections = 0  # clients that connected over TCP directly
         self.occluded_reports = 0
         self.dropped_inputs = 0
         """Connection requests that do not parse or name another host, corrupt client streams
@@ -107,20 +121,27 @@ class VrpnServer:
 
     @property
     def port(self) -> int:
-        assert self._tcp is not None, "server not started"
-        return int(self._tcp.getsockname()[1])
+        """The bound port (TCP and UDP: the real one when configured as 0)."""
+        sock = self._tcp or self._udp
+        assert sock is not None, "server not started"
+        return int(sock.getsockname()[1])
 
     def start(self) -> None:
         cfg = self.config
-        self._tcp = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self._tcp.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self._tcp.bind((cfg.host, cfg.port))
-        self._tcp.listen(4)
-        self._udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self._udp.bind((cfg.host, self.port))
+        port = cfg.port
+        if cfg.accept != "classic":
+            self._tcp = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            self._tcp.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            self._tcp.bind((cfg.host, port))
+            self._tcp.listen(4)
+            port = self.port
+        if cfg.accept != "tcp":
+            self._udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            self._udp.bind((cfg.host, port))
         for s in (self._tcp, self._udp):
-            s.setblocking(False)
-            self._sel.register(s, selectors.EVENT_READ)
+            if s is not None:
+                s.setblocking(False)
+                self._sel.register(s, selectors.EVENT_READ)
         self._stop.clear()
         self._threads = [threading.Thread(target=self._serve, name="vrpn-emu-io", daemon=True),
                          threading.Thread(target=self._stream, name="vrpn-emu-stream",
@@ -150,10 +171,10 @@ class VrpnServer:
 
     # ------------------------------------------------------------------ connections
 
-    def _add(self, sock: socket.socket) -> None:
+    def _add(self, sock: socket.socket, called_back: tuple[str, int] | None = None) -> None:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         sock.settimeout(2.0)  # bounds a blocked sendall; reads only follow select()
-        conn = _Conn(sock)
+        conn = _Conn(sock, called_back)
         self._send(conn, vrpn.encode_cookie())
         with self._conns_lock:
             self._conns.append(conn)
@@ -182,6 +203,7 @@ class VrpnServer:
                     with contextlib.suppress(BlockingIOError):
                         sock, _ = self._tcp.accept()
                         self._add(sock)
+                        self.direct_connections += 1
                 elif key.fileobj is self._udp:
                     self._on_lob()
                 else:
@@ -214,14 +236,15 @@ class VrpnServer:
             log.warning("vrpn emulator: ignoring request from %s to call %s", source[0], ip)
             return
         with self._conns_lock:
-            if any(c.sock.getpeername() == (ip, port) for c in self._conns):
+            if any(c.called_back == (ip, port) for c in self._conns):
                 return  # clients repeat their request until the call-back arrives
         try:
             sock = socket.create_connection((ip, port), timeout=2.0)
         except OSError as exc:
             log.warning("vrpn emulator: cannot call back %s:%d: %s", ip, port, exc)
             return
-        self._add(sock)
+        self._add(sock, called_back=(ip, port))
+        self.callbacks += 1
 
     def _on_readable(self, conn: _Conn) -> None:
         try:

@@ -8,8 +8,9 @@ from typing import Any
 
 import pytest
 
-from drivers.mocap.pose import MocapStats, PoseSample, TrackingStatus
+from drivers.mocap.pose import FrameWaits, MocapStats, PoseSample, TrackingStatus
 from groundstation.cli import main
+from groundstation.commands import mocap as mocap_command
 from groundstation.commands.mocap import format_status
 from sim_backend.emulators.natnet import (
     NatNetEmulatorConfig,
@@ -63,6 +64,58 @@ def test_that_watch_reads_a_vrpn_tracker(capsys: pytest.CaptureFixture[str]) -> 
     assert "Tracker0: p [ +0.250  +0.500  +1.000] m" in capsys.readouterr().out
 
 
+class LockstepPacer(mocap_command.WatchPacer):
+    """The watch's clock is the emulator's: each wait steps the vehicle by the wait and
+    publishes the frames due, and returns once the client has received them."""
+
+    def __init__(self, server: NatNetServer, vehicle: BenchVehicle) -> None:
+        self.server, self.vehicle = server, vehicle
+        self.waits = 0
+
+    def now_s(self) -> float:
+        return self.vehicle.now_s()
+
+    def wait(self, dev: FrameWaits, until_frames: int, timeout_s: float) -> None:
+        self.waits += 1
+        before = dev.frames_seen
+        self.vehicle.advance(timeout_s)
+        published = self.server.publish_due(self.vehicle.now_s())
+        assert dev.wait_for_total(before + published, 10.0)
+
+
+@pytest.mark.parametrize("interval_s,lines", [(0.02, 16), (0.05, 7), (0.1, 4)])
+def test_that_watch_prints_one_line_per_interval_of_the_stream(
+        interval_s: float, lines: int, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # Fixture: a 100 Hz server stepped by the watch's own waits (no wall-clock timing)
+    vehicle = BenchVehicle(pos_w_m=(1.0, -2.0, 1.5))
+    server = NatNetServer(vehicle, NatNetEmulatorConfig(command_port=0, rate_hz=100.0))
+    server.start(realtime=False)
+    server.publish_due(vehicle.now_s())  # the frame schedule starts at t = 0
+    pacer = LockstepPacer(server, vehicle)
+    monkeypatch.setattr(mocap_command, "PACER", pacer)
+    try:
+        # Test: 30 frames = 0.3 s of stream
+        rc = main(["mocap", "watch", f"natnet://127.0.0.1:{server.command_port}",
+                   "--frames", "30", "--interval", str(interval_s)])
+    finally:
+        server.close()
+    # Assert: a line at t = 0, then one per interval until the 30th frame
+    out = capsys.readouterr().out.strip().splitlines()
+    assert rc == 0
+    assert len(out) == lines, out
+    assert out[0].startswith("waiting for frames")
+    assert all("fasthex: p [ +1.000  -2.000  +1.500] m" in line for line in out[1:])
+    assert pacer.waits == lines - 1
+    assert vehicle.now_s() == pytest.approx(0.3)
+
+
+def test_that_a_non_positive_interval_is_a_user_error(capsys: pytest.CaptureFixture[str]
+                                                      ) -> None:
+    rc = main(["mocap", "watch", "natnet://127.0.0.1", "--interval", "0"])
+    assert rc == 2 and "--interval must be > 0 s" in capsys.readouterr().err
+
+
 def test_that_an_unknown_body_is_a_one_line_user_error(capsys: pytest.CaptureFixture[str]
                                                        ) -> None:
     with _emulator() as server:
@@ -71,6 +124,16 @@ def test_that_an_unknown_body_is_a_one_line_user_error(capsys: pytest.CaptureFix
     err = capsys.readouterr().err
     assert rc == 2
     assert "no rigid body named 'nope'" in err and "fasthex" in err and "Traceback" not in err
+
+
+def test_that_watching_an_unknown_vrpn_tracker_ends_with_the_names_the_server_announces(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    with VrpnServer(BenchVehicle(), VrpnEmulatorConfig(port=0, tracker_name="fasthex")) as srv:
+        rc = main(["mocap", "watch", f"vrpn://Tracker0@127.0.0.1:{srv.port}", "--frames", "10"])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "no tracker named 'Tracker0'" in err and "it announces fasthex" in err
+    assert "Traceback" not in err
 
 
 def test_that_an_invalid_sample_is_shown_as_such_without_a_pose() -> None:

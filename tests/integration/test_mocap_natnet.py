@@ -122,7 +122,7 @@ def test_that_the_realtime_thread_streams_at_least_the_frames_waited_for() -> No
         assert pad is not None
         _assert_pose(pad, (1.0, 1.0, 0.0), (1.0, 0.0, 0.0, 0.0))
         assert client.bodies() == {"fasthex": 1, "pad": 7}
-        assert client.stats().rate_hz > 0.0
+        assert client.wait_for_rate(WAIT_S) > 0.0  # measured once 0.25 s of frames arrived
 
 
 def test_that_occluded_frames_are_invalid_samples_and_never_the_stale_pose(
@@ -201,6 +201,51 @@ def test_that_the_client_can_request_an_older_bitstream_in_unicast(
         assert s is not None
         truth = vehicle.true_pose()
         _assert_pose(s, truth.pos_w_m, truth.q_wb)
+
+
+def _server_ignoring_bitstream() -> tuple[NatNetServer, NatNetEmulatorConfig]:
+    """A 4.1 server that answers Bitstream,x.y with success and goes on streaming 4.1."""
+    return _pair("4.1", "unicast", rate_hz=100.0, honour_bitstream=False)
+
+
+def test_that_a_requested_version_the_server_does_not_confirm_is_not_used_to_decode(
+        lockstep: list[NatNetServer], caplog: pytest.LogCaptureFixture) -> None:
+    # Fixture
+    server, cfg = _server_ignoring_bitstream()
+    vehicle = server._vehicle
+    assert isinstance(vehicle, BenchVehicle)
+    # Test: 3.1 requested; the server's SERVERINFO still states 4.1
+    with _start(server, cfg, lockstep, version="3.1") as client:
+        for _ in range(5):
+            _step(server, client, vehicle, 0.01)
+        s = client.latest()
+        stats = client.stats()
+        # Assert: the server's version is read, with a warning naming both
+        assert client.version == (4, 1) and server.version == (4, 1)
+        assert s is not None
+        truth = vehicle.true_pose()
+        _assert_pose(s, truth.pos_w_m, truth.q_wb)
+        assert stats.malformed_packets == 0 and stats.implausible_samples == 0
+    assert any("NatNet 3.1 was requested, the server speaks 4.1" in r.getMessage()
+               for r in caplog.records)
+
+
+def test_that_a_required_version_the_server_does_not_confirm_is_a_connect_error(
+        lockstep: list[NatNetServer]) -> None:
+    server, cfg = _server_ignoring_bitstream()
+    client = _start(server, cfg, lockstep, version="3.1", require_version=True)
+    with pytest.raises(MocapConnectError) as err:
+        client.start()
+    assert "NatNet 3.1 was requested, the server speaks 4.1: the server accepted the " \
+        "Bitstream command but still states its own version" in str(err.value)
+
+
+def test_that_a_version_request_in_multicast_is_refused_when_required(
+        lockstep: list[NatNetServer]) -> None:
+    server, cfg = _pair("4.1", "multicast", rate_hz=100.0)
+    client = _start(server, cfg, lockstep, version="3.1", require_version=True)
+    with pytest.raises(MocapConnectError, match="only be changed in unicast mode"):
+        client.start()
 
 
 def test_that_frames_from_another_address_are_ignored(lockstep: list[NatNetServer]) -> None:

@@ -1,19 +1,25 @@
 """Our VRPN client, and the compiled VRPN 07.38 client inside PyPI ``motioncapture``, against
 the emulated VRPN tracker server over real TCP/UDP sockets on loopback.
 
-Our client connects over TCP directly; the mainline VRPN client in ``motioncapture`` lobs a UDP
-connection request and the emulator connects back over TCP, so both paths are exercised."""
+Both ways a VRPN connection starts are exercised: the classic handshake (the client lobs a UDP
+connection request, the server connects back over TCP: the mainline VRPN client's way and our
+default) and a direct TCP connection. A minimal classic-only server written here from the
+protocol reference, sharing no code with the project, checks that our client reads a server
+that knows nothing but the classic handshake; ``motioncapture`` checks the emulator's side."""
 
 from __future__ import annotations
 
 import math
+import socket
+import struct
 import threading
+import time
 from typing import Any
 
 import pytest
 
 from drivers.mocap.frames import quat_angle_rad, quat_from_axis_angle
-from drivers.mocap.pose import MocapConnectError, TrackingStatus
+from drivers.mocap.pose import MocapConnectError, TrackingStatus, UnknownBodyError
 from drivers.mocap.vrpn_client import VrpnClient, VrpnConfig
 from sim_backend.emulators.vrpn import VrpnEmulatorConfig, VrpnServer
 from sim_backend.vehicle import BenchVehicle, PoseReading
@@ -49,6 +55,8 @@ def test_that_our_client_reads_the_true_pose_from_the_vrpn_emulator() -> None:
         assert s.rx_t_ns - 2_000_000 - 5_000_000 < s.t_ns <= s.rx_t_ns - 2_000_000
         assert client.trackers() == ["Tracker0"]
         assert client.stats().malformed_packets == 0
+        # the default handshake is the classic one: the server called us back
+        assert (server.callbacks, server.direct_connections) == (1, 0)
 
 
 def test_that_a_silent_tracker_is_reported_missing_after_the_staleness_limit() -> None:
@@ -92,6 +100,130 @@ def test_that_no_vrpn_server_is_a_typed_connect_error_naming_the_device() -> Non
         VrpnClient(VrpnConfig(port=port, connect_timeout_s=0.5)).start()
 
 
+def test_that_a_direct_tcp_connection_is_taken_when_asked_for() -> None:
+    with VrpnServer(PosedVehicle(), VrpnEmulatorConfig(port=0)) as server, \
+            VrpnClient(VrpnConfig(port=server.port, handshake="tcp")) as client:
+        assert client.wait_frames(3, WAIT_S)
+        s = client.latest()
+        assert s is not None and s.pos_w_m == pytest.approx((1.25, -0.5, 0.8), abs=1e-12)
+        assert (server.callbacks, server.direct_connections) == (0, 1)
+
+
+def test_that_a_server_that_never_calls_back_is_reached_by_direct_tcp_after_the_lob_timeout(
+        ) -> None:
+    # Fixture: a server variant that only accepts direct TCP (its UDP port is closed)
+    with VrpnServer(PosedVehicle(), VrpnEmulatorConfig(port=0, accept="tcp")) as server, \
+            VrpnClient(VrpnConfig(port=server.port, lob_timeout_s=0.3)) as client:
+        # Test
+        assert client.wait_frames(3, WAIT_S)
+        # Assert
+        s = client.latest()
+        assert s is not None and s.pos_w_m == pytest.approx((1.25, -0.5, 0.8), abs=1e-12)
+        assert (server.callbacks, server.direct_connections) == (0, 1)
+
+
+def test_that_the_classic_handshake_alone_fails_against_a_tcp_only_server_by_name() -> None:
+    with VrpnServer(PosedVehicle(), VrpnEmulatorConfig(port=0, accept="tcp")) as server, \
+            pytest.raises(MocapConnectError, match="no call-back to the UDP connection request"):
+        VrpnClient(VrpnConfig(port=server.port, handshake="classic",
+                              connect_timeout_s=0.5, lob_timeout_s=0.5)).start()
+
+
+def test_that_an_unknown_tracker_is_an_error_naming_it_and_the_announced_trackers() -> None:
+    with VrpnServer(PosedVehicle(), VrpnEmulatorConfig(port=0, tracker_name="fasthex")
+                    ) as server:
+        port = server.port
+        client = VrpnClient(VrpnConfig(tracker="Tracker0", port=port, connect_timeout_s=0.5))
+        with pytest.raises(UnknownBodyError) as err:
+            client.start()
+    text = str(err.value)
+    assert f"vrpn://Tracker0@127.0.0.1:{port}" in text
+    assert "no tracker named 'Tracker0'" in text and "it announces fasthex" in text
+
+
+# ------------------------------------------------------------------ independent classic server
+
+def _vrpn_message(sender: int, kind: int, payload: bytes, t_s: float) -> bytes:
+    """Header: int32 length (24 + unpadded payload), tv_sec, tv_usec, sender, type, 4 pad;
+    the payload padded to 8 bytes (protocol reference, VRPN section)."""
+    head = struct.pack(">iiiii", 24 + len(payload), int(t_s), int((t_s % 1.0) * 1e6), sender,
+                       kind) + bytes(4)
+    return head + payload + bytes(-len(payload) % 8)
+
+
+def _vrpn_name(system_type: int, described: int, name: str) -> bytes:
+    text = name.encode() + b"\0"
+    return _vrpn_message(described, system_type, struct.pack(">i", len(text)) + text, 0.0)
+
+
+class ClassicOnlyServer:
+    """A VRPN tracker server that has no TCP listener at all: it waits for a client's UDP
+    ``"<ip> <port>\\0"`` request and connects back, as a stock VRPN server does."""
+
+    def __init__(self, tracker: str, pos: tuple[float, float, float],
+                 q_xyzw: tuple[float, float, float, float]) -> None:
+        self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.udp.bind(("127.0.0.1", 0))
+        self.udp.settimeout(0.1)
+        self.port = self.udp.getsockname()[1]
+        self.requests: list[bytes] = []
+        self._report = struct.pack(">ii3d4d", 0, 0, *pos, *q_xyzw)
+        self._tracker = tracker
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+
+    def __enter__(self) -> ClassicOnlyServer:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(5.0)
+        self.udp.close()
+
+    def _serve(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data, source = self.udp.recvfrom(256)
+            except TimeoutError:
+                continue
+            self.requests.append(data)
+            host, port = data.split(b"\0")[0].decode().split(" ")
+            assert host == source[0]
+            with socket.create_connection((host, int(port)), timeout=5.0) as tcp:
+                tcp.sendall(b"vrpn: ver. 07.38  0".ljust(24, b"\0"))
+                cookie = b""
+                while len(cookie) < 24:
+                    cookie += tcp.recv(24 - len(cookie))
+                assert cookie.startswith(b"vrpn: ver. 07.")
+                tcp.sendall(_vrpn_name(-1, 3, self._tracker)
+                            + _vrpn_name(-2, 7, "vrpn_Tracker Pos_Quat"))
+                while not self._stop.wait(0.005):
+                    try:
+                        tcp.sendall(_vrpn_message(3, 7, self._report, time.time()))
+                    except OSError:
+                        break  # the client hung up
+            return  # one client is all the test needs
+
+
+def test_that_our_client_reads_a_server_that_only_speaks_the_classic_handshake() -> None:
+    # Fixture
+    with ClassicOnlyServer("Hex", (0.5, -0.25, 1.5), (0.0, 0.0, math.sin(0.3), math.cos(0.3))
+                           ) as server, \
+            VrpnClient(VrpnConfig(tracker="Hex", port=server.port)) as client:
+        # Test
+        assert client.wait_frames(5, WAIT_S)
+        s = client.latest()
+    # Assert: one request, "<ip> <port>" NUL-terminated; the pose in the Z-up world frame
+    [request] = server.requests
+    assert request.endswith(b"\0") and request.count(b"\0") == 1
+    ip, port = request[:-1].decode().split(" ")
+    assert ip == "127.0.0.1" and 1 <= int(port) <= 65535
+    assert s is not None and s.valid and s.body_name == "Hex"
+    assert s.pos_w_m == pytest.approx((0.5, -0.25, 1.5), abs=1e-12)
+    assert quat_angle_rad(s.q_wb, (math.cos(0.3), 0.0, 0.0, math.sin(0.3))) < 1e-9
+
+
 def test_that_the_motioncapture_vrpn_client_reads_our_tracker_server() -> None:
     import motioncapture as mc_mod  # the test extra installs it: missing is a failure
     result: dict[str, Any] = {}
@@ -108,12 +240,15 @@ def test_that_the_motioncapture_vrpn_client_reads_our_tracker_server() -> None:
                                   (float(r.w), float(r.x), float(r.y), float(r.z)))
                 return
 
-    with VrpnServer(PosedVehicle(), VrpnEmulatorConfig(port=0, rate_hz=200.0)) as server:
+    # The emulator as a classic-only server: the mainline client must come in by the lob.
+    cfg = VrpnEmulatorConfig(port=0, rate_hz=200.0, accept="classic")
+    with VrpnServer(PosedVehicle(), cfg) as server:
         # The peer blocks in C++ while waiting: run it in a daemon thread with a deadline.
         t = threading.Thread(target=read, args=(server.port,), daemon=True)
         t.start()
         t.join(WAIT_S)
         assert "pose" in result, "motioncapture received no report within the deadline"
+        assert server.callbacks >= 1 and server.direct_connections == 0
     pos, q = result["pose"]
     assert pos == pytest.approx((1.25, -0.5, 0.8), abs=1e-6)
     assert quat_angle_rad(q, Q) < 1e-6

@@ -13,12 +13,13 @@ from drivers.mocap.vrpn_client import VrpnClient, VrpnConfig
 def test_that_a_full_natnet_uri_sets_every_option() -> None:
     cfg = parse_uri("natnet://192.168.1.10:1600?local=192.168.1.20&mode=multicast"
                     "&data_port=1611&group=239.255.42.98&body=fasthex&version=3.1&up=z"
-                    "&units=mm&delay_ms=0.5")
+                    "&units=mm&delay_ms=0.5&require_version=1")
     assert isinstance(cfg, NatNetConfig)
     assert (cfg.server_ip, cfg.command_port, cfg.local_ip, cfg.mode) == \
         ("192.168.1.10", 1600, "192.168.1.20", "multicast")
     assert (cfg.data_port, cfg.multicast_group, cfg.body, cfg.version) == \
         (1611, "239.255.42.98", "fasthex", "3.1")
+    assert cfg.require_version
     assert (cfg.frames.up_axis, cfg.frames.units) == ("z", "mm")
     assert cfg.network_delay_s == pytest.approx(0.0005)
 
@@ -34,6 +35,12 @@ def test_that_a_vrpn_uri_names_tracker_host_and_port_and_defaults_to_z_up() -> N
     assert (cfg.tracker, cfg.host, cfg.port, cfg.sensor) == ("Tracker0", "127.0.0.1", 3884, 2)
     assert cfg.latency_s == pytest.approx(0.008) and cfg.stale_after_s == pytest.approx(0.03)
     assert cfg.frames.up_axis == "z"
+    assert cfg.handshake == "auto"  # the classic UDP request, then direct TCP
+
+
+def test_that_a_vrpn_uri_can_choose_the_handshake() -> None:
+    cfg = parse_uri("vrpn://Tracker0@127.0.0.1?handshake=tcp")
+    assert isinstance(cfg, VrpnConfig) and cfg.handshake == "tcp"
 
 
 @pytest.mark.parametrize("uri,fragment", [
@@ -44,6 +51,8 @@ def test_that_a_vrpn_uri_names_tracker_host_and_port_and_defaults_to_z_up() -> N
     ("natnet://not-an-ip", "IPv4"),
     ("vrpn://127.0.0.1", "TRACKER@HOST"),
     ("vrpn://T@127.0.0.1?sensor=one", "one"),
+    ("vrpn://T@127.0.0.1?handshake=udp", "handshake"),
+    ("natnet://127.0.0.1?version=3.1&require_version=yes", "require_version"),
     ("qtm://127.0.0.1", "unknown scheme"),
 ])
 def test_that_a_bad_uri_is_a_typed_error_naming_it(uri: str, fragment: str) -> None:
