@@ -115,6 +115,9 @@ class LoopResult:
     #: LANDING): mocap_age_max_s, imu_gap_max_s (from sequence numbers), imu_rate_min_fraction,
     #: body_tilt_max_deg, battery_min_v, pos_min_w_m / pos_max_w_m (the estimate, per axis)
     health_extremes: dict[str, Any] = field(default_factory=dict)
+    #: compute (ms) of the ticks where a cold path would show (a compile, a first-use cache):
+    #: first_after_arming, first_control (the controller's first step, at TAKEOFF)
+    first_ticks_ms: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -194,6 +197,7 @@ class FlightLoop:
         takeoff_t_s: float | None = None
         takeoff_wait_s = 0.0  # mission-clock time held at the take-off end for the vehicle
         lifted_off = False
+        armed_tick = control_tick = -1       # tick indices, for first_ticks_ms
         steady_since_s: float | None = None  # at the take-off height and steady since
         land_here: LandHere | None = None
         alpha = 0.0
@@ -411,6 +415,8 @@ class FlightLoop:
             directive = sm.update(t_s, h)
             # a failsafe in a planned landing stays LANDING but is a transition all the same
             if sm.state is not prev_state or len(sm.transitions) != n_transitions:
+                if sm.state is FlightState.ARMED and armed_tick < 0:
+                    armed_tick = n
                 if sm.state is FlightState.TAKEOFF:
                     takeoff_t_s = t_s
                     tm = 0.0
@@ -436,6 +442,8 @@ class FlightLoop:
                         0.3 if servo_health is ServoHealth.FAULT else LOCKSTEP_SERVO_WAIT_S)
                 except Exception as exc:
                     servo_state = self._servo_sync_failed(exc)
+            if tick is not None and control_tick < 0:
+                control_tick = n
             if tick is not None and directive.motors_on:
                 spins = tick.cmd.spin_hz
                 if not directive.hold_tilt:
@@ -477,6 +485,10 @@ class FlightLoop:
             telemetry_dropped=self._counters["telemetry_dropped"],
             counters=dict(self._counters),
             health_extremes=extremes.as_dict(),
+            first_ticks_ms={"first_after_arming": self.timer.compute_ms(armed_tick + 1)
+                            if armed_tick >= 0 else math.nan,
+                            "first_control": self.timer.compute_ms(control_tick)
+                            if control_tick >= 0 else math.nan},
         )
 
     # -- pieces ----------------------------------------------------------------------------

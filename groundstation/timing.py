@@ -10,6 +10,7 @@ refuse SCHED_FIFO).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,6 +64,11 @@ class LoopTimer:
     @property
     def ticks(self) -> int:
         return self._n
+
+    def compute_ms(self, i: int) -> float:
+        """Compute time of tick ``i`` (ms); NaN when that tick was not recorded."""
+        return float(self._compute[i]) * 1e-6 if 0 <= i < min(self._n, self._capacity) \
+            else math.nan
 
     def last_compute_s(self) -> float:
         i = min(self._n, self._capacity) - 1
