@@ -15,6 +15,14 @@ Forms (options are query parameters; defaults in brackets):
     A VRPN tracker (Vicon Tracker, Motive, QTM). ``PORT`` [3883]; ``sensor`` [0]; ``up`` [z];
     ``units`` [m]; ``latency_ms`` the system latency to subtract [0]; ``stale_ms`` after which
     a silent tracker is reported missing [50]; ``range_m`` as for NatNet [100]. Example: ``vrpn://Tracker0@127.0.0.1:3883``.
+
+``qtm://HOST[:PORT]?body=NAME&component=6d|6dres|6deuler|6deulerres&frequency_hz=F&udp=0|1&local=IP&up=y|z&units=m|mm&latency_ms=F&range_m=F``
+    Qualisys QTM RT. ``PORT`` [22223, the little-endian RT port]; ``body`` the 6DOF body name
+    [the first defined]; ``component`` [6d]; ``frequency_hz`` the stream rate [0: every
+    frame]; ``udp=1`` streams frames over UDP to a port of this PC bound on ``local``
+    [0.0.0.0] instead of the TCP connection [0]; ``up`` [z]; ``units`` [mm]; ``latency_ms``
+    the system latency to subtract [0]; ``range_m`` as for NatNet [100]. Example:
+    ``qtm://192.168.1.10?body=fasthex``.
 """
 
 from __future__ import annotations
@@ -27,12 +35,15 @@ from config.schema import ConfigValueError
 from drivers.mocap.frames import FrameConfig
 from drivers.mocap.natnet_client import NatNetClient, NatNetConfig
 from drivers.mocap.pose import PoseLimits
+from drivers.mocap.qtm_client import QtmClient, QtmConfig
 from drivers.mocap.vrpn_client import VrpnClient, VrpnConfig
 
 NATNET_FORM = ("natnet://SERVER[:PORT]?local=IP&mode=unicast|multicast&data_port=N&group=IP"
                "&body=NAME&version=X.Y&up=y|z&units=m|mm&delay_ms=F&range_m=F")
 VRPN_FORM = ("vrpn://TRACKER@HOST[:PORT]?sensor=N&up=y|z&units=m|mm&latency_ms=F&stale_ms=F"
              "&range_m=F")
+QTM_FORM = ("qtm://HOST[:PORT]?body=NAME&component=6d|6dres|6deuler|6deulerres&frequency_hz=F"
+            "&udp=0|1&local=IP&up=y|z&units=m|mm&latency_ms=F&range_m=F")
 
 
 class MocapUriError(ValueError):
@@ -47,9 +58,9 @@ def _options(query: str, allowed: set[str], uri: str, form: str) -> dict[str, st
     return opts
 
 
-def _frames(opts: dict[str, str], default_up: str) -> FrameConfig:
+def _frames(opts: dict[str, str], default_up: str, default_units: str = "m") -> FrameConfig:
     return FrameConfig(up_axis=opts.get("up", default_up),  # type: ignore[arg-type]
-                       units=opts.get("units", "m"))  # type: ignore[arg-type]
+                       units=opts.get("units", default_units))  # type: ignore[arg-type]
 
 
 def _limits(opts: dict[str, str]) -> PoseLimits:
@@ -58,8 +69,8 @@ def _limits(opts: dict[str, str]) -> PoseLimits:
     return PoseLimits(max_range_m=float(opts["range_m"]))
 
 
-def parse_uri(uri: str) -> NatNetConfig | VrpnConfig:
-    """Parse a ``natnet://`` or ``vrpn://`` URI. Raises :class:`MocapUriError`."""
+def parse_uri(uri: str) -> NatNetConfig | VrpnConfig | QtmConfig:
+    """Parse a ``natnet://``, ``vrpn://`` or ``qtm://`` URI. Raises :class:`MocapUriError`."""
     parts = urlsplit(uri)
     try:
         if parts.scheme == "natnet":
@@ -91,16 +102,31 @@ def parse_uri(uri: str) -> NatNetConfig | VrpnConfig:
                 latency_s=float(opts.get("latency_ms", 0.0)) / 1000.0,
                 stale_after_s=float(opts.get("stale_ms", d2.stale_after_s * 1000)) / 1000.0,
                 frames=_frames(opts, "z"), limits=_limits(opts))
+        if parts.scheme == "qtm":
+            opts = _options(parts.query, {"body", "component", "frequency_hz", "udp", "local",
+                                          "up", "units", "latency_ms", "range_m"}, uri, QTM_FORM)
+            if not parts.hostname:
+                raise MocapUriError(f"{uri}: no QTM host; expected {QTM_FORM}")
+            if opts.get("udp", "0") not in ("0", "1"):
+                raise MocapUriError(f"{uri}: udp must be 0 or 1; expected {QTM_FORM}")
+            d3 = QtmConfig()
+            return QtmConfig(
+                host=parts.hostname, port=parts.port or d3.port, body=opts.get("body", ""),
+                component=opts.get("component", d3.component),
+                frequency_hz=float(opts.get("frequency_hz", 0.0)),
+                udp=opts.get("udp", "0") == "1", local_ip=opts.get("local", d3.local_ip),
+                latency_s=float(opts.get("latency_ms", 0.0)) / 1000.0,
+                frames=_frames(opts, "z", "mm"), limits=_limits(opts))
     except (ConfigValueError, ValueError) as exc:
         if isinstance(exc, MocapUriError):
             raise
         raise MocapUriError(f"{uri}: {exc}") from exc
-    raise MocapUriError(f"{uri}: unknown scheme {parts.scheme!r}; expected {NATNET_FORM} or "
-                        f"{VRPN_FORM}")
+    raise MocapUriError(f"{uri}: unknown scheme {parts.scheme!r}; expected {NATNET_FORM}, "
+                        f"{VRPN_FORM} or {QTM_FORM}")
 
 
 def open_pose_source(uri: str, clock: Callable[[], int] | None = None,
-                     **overrides: object) -> NatNetClient | VrpnClient:
+                     **overrides: object) -> NatNetClient | VrpnClient | QtmClient:
     """An unstarted device for ``uri`` (call ``start()`` or use it as a context manager).
 
     ``overrides`` replace config fields (e.g. ``body="fasthex"`` or ``frames=...``).
@@ -114,4 +140,6 @@ def open_pose_source(uri: str, clock: Callable[[], int] | None = None,
     kwargs = {} if clock is None else {"clock": clock}
     if isinstance(cfg, NatNetConfig):
         return NatNetClient(cfg, **kwargs)
+    if isinstance(cfg, QtmConfig):
+        return QtmClient(cfg, **kwargs)
     return VrpnClient(cfg, **kwargs)
