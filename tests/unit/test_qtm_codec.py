@@ -199,7 +199,7 @@ def test_that_euler_components_give_the_same_world_pose() -> None:
 def test_that_nan_is_invalid_a_short_frame_is_missing_and_a_non_rotation_is_dropped() -> None:
     sut = _client()
     nan = math.nan
-    sut.feed_stream(_frame(PAD, SixDofBody((nan, nan, nan), (nan,) * 9, None)))  # type: ignore[arg-type]
+    sut.feed_stream(_frame(PAD, SixDofBody((nan, nan, nan), (nan,) * 9, None)))
     s = sut.latest()
     assert s is not None and s.status is TrackingStatus.INVALID
     sut.feed_stream(_frame(PAD))
