@@ -116,7 +116,9 @@ class _Conn:
         self.sock = sock
         self.peer_ip = ""
         with contextlib.suppress(OSError):
-            self.peer_ip = str(sock.getpeername()[0])
+            peer = sock.getpeername()
+            if isinstance(peer, tuple):  # an IP socket (a socketpair in tests has no address)
+                self.peer_ip = str(peer[0])
         self.parser = qtm.QtmStreamParser()
         self.version = (1, MAX_MINOR_VERSION)
         self.stream: _Stream | None = None

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import socket
 import struct
 
 import pytest
@@ -233,3 +234,35 @@ def test_that_random_packets_never_raise_in_the_client(chunks: list[bytes],
     s = sut.latest()
     if s is not None and s.valid:
         assert all(math.isfinite(c) for c in s.pos_w_m + s.q_wb)
+
+
+# ---------------------------------------------------------------------------- emulator
+
+
+WORDS = ["StreamFrames", "Stop", "AllFrames", "Frequency:0", "FrequencyDivisor:7", "UDP:1",
+         "udp:10.0.0.1:9", "6D", "6DEulerRes", "3D", "GetParameters", "All", "Calibration",
+         "Version", "1.99", "0.5", "GetCurrentFrame", "GetState", "QTMVersion"]
+COMMANDS = st.lists(st.sampled_from(WORDS), max_size=5).map(
+    lambda words: qtm.encode_command(" ".join(words)))
+PACKETS = st.builds(qtm.encode_packet, st.integers(0, 12), st.binary(max_size=80))
+
+
+@settings(max_examples=200, deadline=None)
+@given(chunks=st.lists(st.one_of(st.binary(max_size=120), PACKETS, COMMANDS), max_size=5))
+def test_that_random_client_bytes_never_raise_in_the_emulator(chunks: list[bytes]) -> None:
+    from sim_backend.emulators.qtm import QtmServer
+    from sim_backend.vehicle import BenchVehicle
+
+    server = QtmServer(BenchVehicle())
+    a, b = socket.socketpair()
+    with a, b:
+        b.setblocking(False)
+        conn = server.connection_for(a)
+        conn.peer_ip = "127.0.0.1"
+        for chunk in chunks:
+            if not server.handle_stream(conn, chunk):
+                break
+            with contextlib.suppress(BlockingIOError):
+                while b.recv(65536):  # answers: drained so that sends never block
+                    pass
+    assert server.counters.input_errors == 0
