@@ -147,13 +147,46 @@ class QtmClient(FrameWaits):
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def start(self) -> None:
+    def start(self, receive_thread: bool = True) -> None:
         """Connect, handshake, resolve the body and start streaming (raises MocapConnectError
-        or UnknownBodyError), then start the receive thread."""
+        or UnknownBodyError), then start the receive thread.
+
+        With ``receive_thread=False`` nothing receives in the background: the owner calls
+        :meth:`poll` (a lockstep loop does, so that it sees exactly the frames that arrived
+        before its IMU sample, whatever the thread scheduling)."""
         self._connect()
         self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="qtm-rx", daemon=True)
-        self._thread.start()
+        if not receive_thread and self._sock is not None:
+            self._sock.setblocking(False)  # poll() must never wait
+        if receive_thread:
+            self._thread = threading.Thread(target=self._run, name="qtm-rx", daemon=True)
+            self._thread.start()
+
+    def poll(self) -> int:
+        """Receive every packet already waiting, in the caller's thread; never blocks. Returns
+        the number of TCP reads and datagrams handled. A broken connection is closed (and,
+        without the receive thread, not re-opened)."""
+        handled = 0
+        sock, udp = self._sock, self._udp
+        while udp is not None:
+            try:
+                data, addr = udp.recvfrom(65536)
+            except OSError:  # BlockingIOError: nothing waiting
+                break
+            self.feed_datagram(data, addr)
+            handled += 1
+        while sock is not None:
+            try:
+                chunk = sock.recv(65536, socket.MSG_DONTWAIT)
+            except (BlockingIOError, InterruptedError, TimeoutError):
+                break
+            except OSError:
+                chunk = b""
+            handled += 1
+            if not chunk or not self.feed_stream(chunk):
+                self._reset()
+                break
+        return handled
 
     def close(self) -> None:
         self._stop.set()

@@ -18,16 +18,24 @@ import socket
 import subprocess
 import sys
 import threading
+from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import qtm_rt  # the test extra installs it: missing is a failure
+from flight_support import short_session
 
 from drivers.mocap import qtm
 from drivers.mocap.frames import Quat, quat_angle_rad, quat_from_axis_angle, xyzw_to_wxyz
 from drivers.mocap.pose import MocapConnectError, TrackingStatus, UnknownBodyError
 from drivers.mocap.qtm_client import QtmClient, QtmConfig
 from groundstation.cli import main
+from groundstation.flight import FlightState
+from groundstation.record import read_record
+from groundstation.session import FlightSession
+from groundstation.session_config import EmulatedBackend
 from sim_backend.emulators.qtm import QtmEmulatorConfig, QtmServer, QtmStaticBody
 from sim_backend.vehicle import BenchVehicle, PoseReading
 
@@ -270,3 +278,32 @@ def test_that_fasthex_mocap_watch_and_list_read_a_qtm_server(
     assert "   0  fasthex" in out and "   1  pad" in out
     assert "pad: p [ +3.000  +0.500  +0.000] m" in out
     assert "no 6DOF body named 'nope'" in err and "Traceback" not in err
+
+
+def test_that_a_short_lockstep_flight_is_flown_on_the_emulated_qtm_server(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # Fixture: the short emulated session, with the QTM server instead of Motive
+    cfg, params, mission = short_session(tmp_path)
+    assert isinstance(cfg.backend, EmulatedBackend) and cfg.backend.mocap == "natnet"
+    cfg = replace(cfg, backend=replace(cfg.backend, mocap="qtm"))
+    started: list[tuple[str, bool]] = []
+    start = QtmClient.start
+
+    def spy(self: QtmClient, receive_thread: bool = True) -> None:
+        started.append((self.config.body, receive_thread))
+        start(self, receive_thread)
+
+    monkeypatch.setattr(QtmClient, "start", spy)
+    # Test
+    out = FlightSession(cfg, params, mission, record_path=tmp_path / "qtm.fhr",
+                        echo_events=False, dashboard="off").run()
+    # Assert
+    assert started == [("fasthex", False)]  # lockstep: the loop polls the QTM client itself
+    assert [t.to_state for t in out.result.transitions] == [
+        FlightState.ARMED, FlightState.TAKEOFF, FlightState.MISSION, FlightState.LANDING,
+        FlightState.DISARMED]
+    assert out.result.faults == []
+    rows = read_record(out.record_path).rows
+    measured = rows[rows["measured"] > 0]
+    est_err_mm = 1e3 * np.linalg.norm(measured["est_pos_w_m"] - measured["pos_w_m"], axis=1)
+    assert est_err_mm.mean() < 3.0  # as on NatNet: the UKF fused the QTM poses
