@@ -33,7 +33,8 @@ Plausibility (:class:`~drivers.mocap.pose.PoseLimits`): a timestamp giving a lat
 (rebuilt from its quaternion it differs by more than ``max_quat_norm_error``) is dropped and
 counted (``stats().implausible_samples``); the previous sample stays the latest.
 :meth:`QtmClient.feed_stream` and :meth:`QtmClient.feed_datagram` run the receive path in
-process (fuzzing, replay).
+process (fuzzing, replay); ``start(receive_thread=False)`` with :meth:`QtmClient.poll` lets a
+lockstep loop receive in its own thread.
 
 Default axes are QTM's: Z-up, millimetres.
 """
