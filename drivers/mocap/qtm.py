@@ -180,11 +180,12 @@ def encode_packet(kind: int, body: bytes) -> bytes:
 
 
 def encode_command(text: str) -> bytes:
-    return encode_packet(PacketType.COMMAND, text.encode("ascii") + b"\0")
+    """Commands are ASCII; body names in them may not be (UTF-8, as QTM's XML)."""
+    return encode_packet(PacketType.COMMAND, text.encode("utf-8", errors="replace") + b"\0")
 
 
 def encode_error(text: str) -> bytes:
-    return encode_packet(PacketType.ERROR, text.encode("ascii") + b"\0")
+    return encode_packet(PacketType.ERROR, text.encode("utf-8", errors="replace") + b"\0")
 
 
 def encode_xml(text: str) -> bytes:

@@ -241,7 +241,8 @@ def test_that_random_packets_never_raise_in_the_client(chunks: list[bytes],
 
 WORDS = ["StreamFrames", "Stop", "AllFrames", "Frequency:0", "FrequencyDivisor:7", "UDP:1",
          "udp:10.0.0.1:9", "6D", "6DEulerRes", "3D", "GetParameters", "All", "Calibration",
-         "Version", "1.99", "0.5", "GetCurrentFrame", "GetState", "QTMVersion"]
+         "Version", "1.99", "0.5", "GetCurrentFrame", "GetState", "QTMVersion",
+         "6DÉuler"]  # echoed in the error answer: not ASCII
 COMMANDS = st.lists(st.sampled_from(WORDS), max_size=5).map(
     lambda words: qtm.encode_command(" ".join(words)))
 PACKETS = st.builds(qtm.encode_packet, st.integers(0, 12), st.binary(max_size=80))
