@@ -41,6 +41,7 @@ from drivers.errors import DriverError
 from drivers.mikrokopter.device import FlightCtrl, FlightCtrlConfig
 from drivers.mocap.natnet_client import NatNetClient
 from drivers.mocap.pose import MocapError
+from drivers.mocap.qtm_client import QtmClient
 from drivers.mocap.uri import open_pose_source
 from estimator.ukf import Ukf
 from groundstation.flight import SafetyLimits
@@ -93,8 +94,9 @@ def device_uris(cfg: SessionConfig, emulator: EmulatorProcess | None) -> DeviceU
     if emulator is None:
         raise SessionError("the emulated backend is not running")
     devs = emulator.devices
-    return DeviceUris(devs["flight-ctrl"], devs["servo"] + "?baud=1000000&id=1",
-                      f"natnet://{devs['mocap']}?local=127.0.0.1&body=fasthex",
+    mocap = f"qtm://{devs['mocap']}?body=fasthex" if backend.mocap == "qtm" \
+        else f"natnet://{devs['mocap']}?local=127.0.0.1&body=fasthex"
+    return DeviceUris(devs["flight-ctrl"], devs["servo"] + "?baud=1000000&id=1", mocap,
                       SERVO_ZERO_OFFSET_STEPS)
 
 
@@ -112,7 +114,8 @@ class EmulatorProcess:
         for fault in cfg.faults:
             args += ["--fault", fault]
         args += ["--board-clock-ppm", repr(cfg.board_clock_ppm), "--mocap-clock-offset-s",
-                 repr(cfg.mocap_clock_offset_s), "--mocap-clock-ppm", repr(cfg.mocap_clock_ppm)]
+                 repr(cfg.mocap_clock_offset_s), "--mocap-clock-ppm", repr(cfg.mocap_clock_ppm),
+                 "--mocap", cfg.mocap]
         if truth_path is not None:
             args += ["--truth", str(truth_path)]
         args += ["--realtime-settings", "on" if realtime_settings else "off"]
@@ -349,7 +352,7 @@ class FlightSession:
 
             mocap = _open_device("mocap", mocap_uri, lambda: open_pose_source(
                 mocap_uri, clock=loop_clock if lockstep else None))
-            if isinstance(mocap, NatNetClient):
+            if isinstance(mocap, NatNetClient | QtmClient):
                 _open_device("mocap", mocap_uri, lambda: mocap.start(receive_thread=not lockstep))
             else:
                 _open_device("mocap", mocap_uri, mocap.start)

@@ -79,6 +79,8 @@ class EmulatedBackend:
                                        doc="the MoCap server's clock minus the emulator's")
     mocap_clock_ppm: float = spec(0.0, ge=-50_000.0, le=50_000.0,
                                   doc="rate error of the MoCap server's clock")
+    mocap: Literal["natnet", "qtm"] = spec("natnet", doc="emulated MoCap server: natnet "
+                                           "(Motive, UDP) or qtm (Qualisys QTM RT, TCP)")
 
     def __post_init__(self) -> None:
         from sim_backend.backend import ScheduledFault

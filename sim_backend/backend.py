@@ -3,8 +3,9 @@
 - **flight-ctrl**: the emulated Flight-Ctrl (tk3) on a pty, driving the simulator's rotors and
   reading its IMU model;
 - **servo**: the emulated MX-28T on a pty, geared to the simulator's tilt drive;
-- **mocap**: an emulated NatNet (Motive) server on UDP loopback streaming the simulator's pose
-  with the preset's noise, rate and latency.
+- **mocap**: an emulated NatNet (Motive) server on UDP loopback, or with ``--mocap qtm`` an
+  emulated Qualisys QTM RT server on TCP loopback, streaming the simulator's pose with the
+  preset's noise, rate and latency.
 
 Time: the Flight-Ctrl emulator is the only thing that advances the physics (one IMU period per
 received ``w`` frame in ``lockstep``, the wall clock in ``realtime``). Every advance also lets the
@@ -52,6 +53,7 @@ from sim_backend.emulators.flightctrl import (
     WireFaults,
 )
 from sim_backend.emulators.natnet import NatNetEmulatorConfig, NatNetServer
+from sim_backend.emulators.qtm import QtmEmulatorConfig, QtmServer
 from sim_backend.simulator import FastHexSimulator
 from sim_backend.vehicle import EmulatedVehicle, ImuReading, PoseReading
 
@@ -79,6 +81,7 @@ class BackendOptions:
     board_clock_ppm: float = 0.0
     mocap_clock_offset_s: float = 0.0
     mocap_clock_ppm: float = 0.0
+    mocap: Literal["natnet", "qtm"] = "natnet"  # which MoCap server the vehicle is seen by
 
 
 FaultKind = Literal["mocap-dropout", "fc-disconnect", "servo-silent", "battery-sag",
@@ -177,7 +180,7 @@ class ImuWireLoss:
 @dataclass(frozen=True)
 class DeviceAddress:
     device: str
-    kind: Literal["pty", "udp"]
+    kind: Literal["pty", "udp", "tcp"]
     address: str
 
 
@@ -306,22 +309,30 @@ class EmulatedVehicleBackend:
             gear_ratio=opts.vehicle.tilt.worm_ratio, zero_offset_steps=SERVO_ZERO_OFFSET_STEPS,
             step_on_wall_clock=opts.clock == "realtime",
         )
-        self.mocap = NatNetServer(
-            self.vehicle,
-            NatNetEmulatorConfig(
-                command_port=0,
-                rate_hz=min(max(p.mocap_rate_hz, 100.0), 360.0),
-                pos_noise_m=p.mocap_pos_noise_m,
-                rot_noise_rad=p.mocap_att_noise_rad,
-                latency_s=p.mocap_latency_s,
-                occlusion_probability=p.mocap_dropout_prob,
-                occlusion_frames=1,
-                seed=opts.seed,
-                server_clock_offset_s=opts.mocap_clock_offset_s,
-                server_clock_drift_ppm=opts.mocap_clock_ppm,
-            ),
-            lock=threading.Lock(),
+        natnet_cfg = NatNetEmulatorConfig(
+            command_port=0,
+            rate_hz=min(max(p.mocap_rate_hz, 100.0), 360.0),
+            pos_noise_m=p.mocap_pos_noise_m,
+            rot_noise_rad=p.mocap_att_noise_rad,
+            latency_s=p.mocap_latency_s,
+            occlusion_probability=p.mocap_dropout_prob,
+            occlusion_frames=1,
+            seed=opts.seed,
+            server_clock_offset_s=opts.mocap_clock_offset_s,
+            server_clock_drift_ppm=opts.mocap_clock_ppm,
         )
+        self.mocap: NatNetServer | QtmServer
+        if opts.mocap == "qtm":  # the same preset: rate, noise, latency, dropouts, clock
+            c = natnet_cfg
+            self.mocap = QtmServer(self.vehicle, QtmEmulatorConfig(
+                port=0, rate_hz=c.rate_hz, pos_noise_m=c.pos_noise_m,
+                rot_noise_rad=c.rot_noise_rad, latency_s=c.latency_s,
+                occlusion_probability=c.occlusion_probability,
+                occlusion_frames=c.occlusion_frames, seed=c.seed,
+                server_clock_offset_s=c.server_clock_offset_s,
+                server_clock_drift_ppm=c.server_clock_drift_ppm), lock=threading.Lock())
+        else:
+            self.mocap = NatNetServer(self.vehicle, natnet_cfg, lock=threading.Lock())
         self.vehicle.on_advance.append(self.mocap)
         if opts.truth_path is not None:
             self.vehicle.truth = TruthLog(opts.truth_path)
@@ -379,6 +390,8 @@ class EmulatedVehicleBackend:
         return [
             DeviceAddress("flight-ctrl", "pty", self.flight_ctrl.path),
             DeviceAddress("servo", "pty", self.servo.path),
+            DeviceAddress("mocap", "tcp", f"127.0.0.1:{self.mocap.port}")
+            if isinstance(self.mocap, QtmServer) else
             DeviceAddress("mocap", "udp", f"127.0.0.1:{self.mocap.command_port}"),
         ]
 
@@ -435,6 +448,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="the MoCap server's clock minus the emulator's (>= 0)")
     ap.add_argument("--mocap-clock-ppm", type=float, default=0.0,
                     help="rate error of the MoCap server's clock")
+    ap.add_argument("--mocap", choices=("natnet", "qtm"), default="natnet",
+                    help="emulated MoCap server: NatNet (Motive, UDP) or Qualisys QTM RT (TCP)")
     args = ap.parse_args(argv)
     try:
         faults = tuple(ScheduledFault.parse(f) for f in args.fault)
@@ -454,7 +469,7 @@ def main(argv: list[str] | None = None) -> int:
         wire_faults=WireFaults(corrupt_prob=args.corrupt_prob, seed=args.seed),
         watchdog_s=args.watchdog_s, faults=faults, truth_path=args.truth,
         board_clock_ppm=args.board_clock_ppm, mocap_clock_offset_s=args.mocap_clock_offset_s,
-        mocap_clock_ppm=args.mocap_clock_ppm,
+        mocap_clock_ppm=args.mocap_clock_ppm, mocap=args.mocap,
     ))
     stop = _StopFlags()
     # Handlers only set a flag; the C-level wake-up byte ends the main thread's wait at once.

@@ -38,14 +38,16 @@ from drivers.mavlink.link import MavlinkCodec
 from drivers.mikrokopter import framing_stock, framing_tk3
 from drivers.mikrokopter import messages as mkm
 from drivers.mikrokopter.device import FlightCtrl, FlightCtrlConfig
-from drivers.mocap import natnet, vrpn
+from drivers.mocap import natnet, qtm, vrpn
 from drivers.mocap.natnet_client import NatNetClient, NatNetConfig
 from drivers.mocap.pose import PoseSample
+from drivers.mocap.qtm_client import QtmClient, QtmConfig
 from drivers.mocap.vrpn_client import VrpnClient, VrpnConfig
 from drivers.transport import LoopTransport
 from sim_backend.emulators.dynamixel_p1 import EmulatedMX28
 from sim_backend.emulators.flightctrl import EmulatedFlightCtrl, FlightCtrlEmulatorConfig
 from sim_backend.emulators.natnet import MAX_CLIENTS, NatNetEmulatorConfig, NatNetServer
+from sim_backend.emulators.qtm import QtmServer
 from sim_backend.emulators.vrpn import VrpnServer
 from sim_backend.vehicle import BenchVehicle
 
@@ -552,6 +554,105 @@ def vrpn_emulator() -> Target:
                   close=close)
 
 
+# ------------------------------------------------------------------------------- QTM RT
+
+_QTM_YAW_90 = (0.0, 1.0, 0.0, -1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+
+
+def _qtm_frame(kind: qtm.ComponentType, matrix: bool, n: int = 7) -> bytes:
+    body = qtm.SixDofBody((500.0, -200.0, 1000.0), _QTM_YAW_90 if matrix else None,
+                          None if matrix else (0.0, 0.0, 90.0), 0.4)
+    return qtm.encode_data_frame(qtm.DataFrame(
+        1_000_000 + n, n, (qtm.SixDofComponent(kind, 0, 0, (body, body)),)))
+
+
+def _qtm_seeds() -> list[bytes]:
+    return [_qtm_frame(qtm.ComponentType.C6D, True), _qtm_frame(qtm.ComponentType.C6D_EULER_RES,
+                                                                False),
+            qtm.encode_command(qtm.WELCOME), qtm.encode_event(qtm.Event.CAPTURE_STARTED),
+            qtm.encode_xml(qtm.encode_6d_parameters(["fasthex", "pad"])),
+            qtm.encode_command("StreamFrames AllFrames UDP:6734 3DNoLabels 6DEuler"),
+            qtm.encode_command("GetParameters 6D"), qtm.encode_command("Version 1.19"),
+            qtm.encode_command("GetCurrentFrame 6DRes")]
+
+
+def qtm_codec() -> Target:
+    """QTM stream parser (framing), data frames, events, parameters XML, StreamFrames."""
+
+    def run(data: bytes) -> int:
+        bad = 0
+        parser = qtm.QtmStreamParser()
+        a, b = _split(data)
+        with contextlib.suppress(qtm.QtmDecodeError):
+            for p in parser.feed(a) + parser.feed(b):
+                if len(p.body) + qtm.HEADER_SIZE > qtm.MAX_PACKET_BYTES:
+                    bad += 1
+                with contextlib.suppress(qtm.QtmDecodeError):
+                    frame = qtm.decode_data(p.body)
+                    # a body takes at least 24 bytes (position and Euler angles)
+                    bad += sum(1 for c in frame.components if len(c.bodies) * 24 > len(p.body))
+                with contextlib.suppress(qtm.QtmDecodeError):
+                    qtm.decode_event(p.body)
+                with contextlib.suppress(qtm.QtmDecodeError):
+                    qtm.decode_6d_body_names(qtm.decode_text(p.body))
+        with contextlib.suppress(qtm.QtmDecodeError):
+            _, _, port, _ = qtm.parse_stream_command(data.decode("latin-1"))
+            if port is not None and not 1 <= port <= 65535:
+                bad += 1
+        return bad
+
+    return Target("qtm-codec", "QtmStreamParser + data/event/parameters/StreamFrames decoders",
+                  run, _qtm_seeds())
+
+
+def qtm_driver() -> Target:
+    """QtmClient's receive path after GetParameters (body "fasthex", index 0): every delivered
+    pose is finite, inside the workspace, a unit quaternion, with a latency in 0..1 s."""
+    cfg = QtmConfig(body="fasthex")
+    clock = [10**12]
+    client = QtmClient(cfg, clock=lambda: clock[0])
+    client._on_parameters(qtm.encode_6d_parameters(["fasthex", "pad"]))
+    client._server_ip = "127.0.0.1"
+
+    def run(data: bytes) -> int:
+        clock[0] += 10_000_000
+        a, b = _split(data)
+        if not client.feed_stream(a) or not client.feed_stream(b):
+            client.feed_stream(b"")  # the parser started over, as after a reconnection
+        client.feed_datagram(data, ("127.0.0.1", qtm.DEFAULT_PORT))
+        return _pose_bad(client.latest(), cfg.limits.max_range_m, cfg.limits.max_latency_s)
+
+    return Target("qtm-driver", "QtmClient.feed_stream/feed_datagram -> PoseSample", run,
+                  _qtm_seeds())
+
+
+def qtm_emulator() -> Target:
+    """The emulated QTM server's command side on a client's TCP stream (in process, on a
+    socket pair; the reply side is drained; UDP frames are never sent: not started)."""
+    server = QtmServer(BenchVehicle())
+    ours, theirs = socket.socketpair()
+    for s in (ours, theirs):
+        s.setblocking(False)
+
+    def run(data: bytes) -> int:
+        conn = server.connection_for(ours)
+        a, b = _split(data)
+        if server.handle_stream(conn, a):
+            server.handle_stream(conn, b)
+        with contextlib.suppress(BlockingIOError, OSError):
+            while theirs.recv(65536):
+                pass
+        stream = conn.stream
+        return 0 if stream is None or stream.divisor >= 1 else 1
+
+    def close() -> None:
+        ours.close()
+        theirs.close()
+
+    return Target("qtm-emu", "QtmServer.handle_stream (commands)", run, _qtm_seeds(),
+                  close=close)
+
+
 # ------------------------------------------------------------------------------- MAVLink
 
 _KEY = bytes(range(32))
@@ -604,6 +705,9 @@ TARGETS: dict[str, Callable[[], Target]] = {
     "vrpn-codec": vrpn_codec,
     "vrpn-driver": vrpn_driver,
     "vrpn-emu": vrpn_emulator,
+    "qtm-codec": qtm_codec,
+    "qtm-driver": qtm_driver,
+    "qtm-emu": qtm_emulator,
     "mavlink-decode": mavlink_input,
 }
 """Every target by name, built on demand (some own a pty or sockets: ``close()`` them)."""

@@ -25,6 +25,14 @@ Forms (options are query parameters; defaults in brackets):
     (Vicon DataStream), ``optitrack``, ``qualisys``, ``vrpn`` (``host`` as ``HOST:PORT``).
     ``up`` [z; y for optitrack]; the other options as for VRPN. Example:
     ``motioncapture://vicon?host=192.168.1.5&body=fasthex``.
+
+``qtm://HOST[:PORT]?body=NAME&component=6d|6dres|6deuler|6deulerres&frequency_hz=F&udp=0|1&local=IP&up=y|z&units=m|mm&latency_ms=F&range_m=F``
+    Qualisys QTM RT. ``PORT`` [22223, the little-endian RT port]; ``body`` the 6DOF body name
+    [the first defined]; ``component`` [6d]; ``frequency_hz`` the stream rate [0: every
+    frame]; ``udp=1`` streams frames over UDP to a port of this PC bound on ``local``
+    [0.0.0.0] instead of the TCP connection [0]; ``up`` [z]; ``units`` [mm]; ``latency_ms``
+    the system latency to subtract [0]; ``range_m`` as for NatNet [100]. Example:
+    ``qtm://192.168.1.10?body=fasthex``.
 """
 
 from __future__ import annotations
@@ -42,6 +50,7 @@ from drivers.mocap.motioncapture_client import (
 )
 from drivers.mocap.natnet_client import NatNetClient, NatNetConfig
 from drivers.mocap.pose import PoseLimits
+from drivers.mocap.qtm_client import QtmClient, QtmConfig
 from drivers.mocap.vrpn_client import VrpnClient, VrpnConfig
 
 NATNET_FORM = ("natnet://SERVER[:PORT]?local=IP&mode=unicast|multicast&data_port=N&group=IP"
@@ -51,6 +60,8 @@ VRPN_FORM = ("vrpn://TRACKER@HOST[:PORT]?sensor=N&up=y|z&units=m|mm&latency_ms=F
              "&range_m=F&handshake=auto|classic|tcp")
 MOTIONCAPTURE_FORM = ("motioncapture://vicon|optitrack|qualisys|vrpn?host=HOST&body=NAME"
                       "&up=y|z&units=m|mm&latency_ms=F&stale_ms=F&range_m=F")
+QTM_FORM = ("qtm://HOST[:PORT]?body=NAME&component=6d|6dres|6deuler|6deulerres&frequency_hz=F"
+            "&udp=0|1&local=IP&up=y|z&units=m|mm&latency_ms=F&range_m=F")
 
 
 class MocapUriError(ValueError):
@@ -65,9 +76,9 @@ def _options(query: str, allowed: set[str], uri: str, form: str) -> dict[str, st
     return opts
 
 
-def _frames(opts: dict[str, str], default_up: str) -> FrameConfig:
+def _frames(opts: dict[str, str], default_up: str, default_units: str = "m") -> FrameConfig:
     return FrameConfig(up_axis=opts.get("up", default_up),  # type: ignore[arg-type]
-                       units=opts.get("units", "m"))  # type: ignore[arg-type]
+                       units=opts.get("units", default_units))  # type: ignore[arg-type]
 
 
 def _flag(opts: dict[str, str], key: str) -> bool:
@@ -83,8 +94,8 @@ def _limits(opts: dict[str, str]) -> PoseLimits:
     return PoseLimits(max_range_m=float(opts["range_m"]))
 
 
-def parse_uri(uri: str) -> NatNetConfig | VrpnConfig | MotionCaptureConfig:
-    """Parse a ``natnet://``, ``vrpn://`` or ``motioncapture://`` URI. Raises
+def parse_uri(uri: str) -> NatNetConfig | VrpnConfig | MotionCaptureConfig | QtmConfig:
+    """Parse a ``natnet://``, ``vrpn://``, ``motioncapture://`` or ``qtm://`` URI. Raises
     :class:`MocapUriError`."""
     parts = urlsplit(uri)
     try:
@@ -128,16 +139,31 @@ def parse_uri(uri: str) -> NatNetConfig | VrpnConfig | MotionCaptureConfig:
                 latency_s=float(opts.get("latency_ms", 0.0)) / 1000.0,
                 stale_after_s=float(opts.get("stale_ms", d3.stale_after_s * 1000)) / 1000.0,
                 frames=_frames(opts, SYSTEM_UP_AXIS.get(system, "z")), limits=_limits(opts))
+        if parts.scheme == "qtm":
+            opts = _options(parts.query, {"body", "component", "frequency_hz", "udp", "local",
+                                          "up", "units", "latency_ms", "range_m"}, uri, QTM_FORM)
+            if not parts.hostname:
+                raise MocapUriError(f"{uri}: no QTM host; expected {QTM_FORM}")
+            if opts.get("udp", "0") not in ("0", "1"):
+                raise MocapUriError(f"{uri}: udp must be 0 or 1; expected {QTM_FORM}")
+            dq = QtmConfig()
+            return QtmConfig(
+                host=parts.hostname, port=parts.port or dq.port, body=opts.get("body", ""),
+                component=opts.get("component", dq.component),
+                frequency_hz=float(opts.get("frequency_hz", 0.0)),
+                udp=opts.get("udp", "0") == "1", local_ip=opts.get("local", dq.local_ip),
+                latency_s=float(opts.get("latency_ms", 0.0)) / 1000.0,
+                frames=_frames(opts, "z", "mm"), limits=_limits(opts))
     except (ConfigValueError, ValueError) as exc:
         if isinstance(exc, MocapUriError):
             raise
         raise MocapUriError(f"{uri}: {exc}") from exc
     raise MocapUriError(f"{uri}: unknown scheme {parts.scheme!r}; expected {NATNET_FORM}, "
-                        f"{VRPN_FORM} or {MOTIONCAPTURE_FORM}")
+                        f"{VRPN_FORM}, {MOTIONCAPTURE_FORM} or {QTM_FORM}")
 
 
-def open_pose_source(uri: str, clock: Callable[[], int] | None = None,
-                     **overrides: object) -> NatNetClient | VrpnClient | MotionCaptureClient:
+def open_pose_source(uri: str, clock: Callable[[], int] | None = None, **overrides: object
+                     ) -> NatNetClient | VrpnClient | MotionCaptureClient | QtmClient:
     """An unstarted device for ``uri`` (call ``start()`` or use it as a context manager).
 
     ``overrides`` replace config fields (e.g. ``body="fasthex"`` or ``frames=...``).
@@ -153,4 +179,6 @@ def open_pose_source(uri: str, clock: Callable[[], int] | None = None,
         return NatNetClient(cfg, **kwargs)
     if isinstance(cfg, MotionCaptureConfig):
         return MotionCaptureClient(cfg) if clock is None else MotionCaptureClient(cfg, clock)
+    if isinstance(cfg, QtmConfig):
+        return QtmClient(cfg, **kwargs)
     return VrpnClient(cfg, **kwargs)

@@ -1,9 +1,9 @@
 """``fasthex emulate [SESSION]``: run only the emulated vehicle and say where its devices are.
 
 Prints one line per device (``flight-ctrl``, ``servo``: a pty path; ``mocap``: a NatNet UDP
-address), then runs until Ctrl-C. Any client can connect: this ground station
-(``fasthex fly`` with a hardware session naming these paths), ``fasthex mocap watch``, the
-Dynamixel Wizard, a serial terminal.
+address, or with ``--mocap qtm`` a QTM RT TCP address), then runs until Ctrl-C. Any client
+can connect: this ground station (``fasthex fly`` with a hardware session naming these paths),
+``fasthex mocap watch``, Qualisys' SDK, the Dynamixel Wizard, a serial terminal.
 """
 
 from __future__ import annotations
@@ -25,6 +25,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="realtime (default: any client) or lockstep (steps per `w`)")
     parser.add_argument("--link-dir", default=str(Path(tempfile.gettempdir()) / "fasthex"),
                         help="directory for the stable device links (default: %(default)s)")
+    parser.add_argument("--mocap", choices=("natnet", "qtm"), default=None,
+                        help="emulated MoCap server: natnet (Motive) or qtm (Qualisys QTM RT) "
+                        "(default: the session's, natnet unless it says otherwise)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -43,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     if not isinstance(cfg.backend, EmulatedBackend):
         raise UserError(f"{path}: not an emulated session (backend kind "
                         f"{cfg.backend.kind!r})")
-    backend = replace(cfg.backend, clock=args.clock)
+    backend = replace(cfg.backend, clock=args.clock, mocap=args.mocap or cfg.backend.mocap)
     mission = Mission(load_mission(resolve_reference(path, cfg.mission)))
     link_dir = Path(args.link_dir)
     link_dir.mkdir(parents=True, exist_ok=True)
@@ -58,8 +61,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"flight-ctrl  pty  {emulator.devices['flight-ctrl']}  (tk3, {backend.clock})")
         print(f"servo        pty  {emulator.devices['servo']}  (MX-28T, Protocol 1.0, id 1, "
               "1 Mbaud)")
-        print(f"mocap        udp  {emulator.devices['mocap']}  (NatNet 4.1 command port; "
-              f"{uris.mocap})", flush=True)
+        if backend.mocap == "qtm":
+            print(f"mocap        tcp  {emulator.devices['mocap']}  (QTM RT, little-endian; "
+                  f"{uris.mocap})", flush=True)
+        else:
+            print(f"mocap        udp  {emulator.devices['mocap']}  (NatNet 4.1 command port; "
+                  f"{uris.mocap})", flush=True)
         print("running; Ctrl-C to stop", flush=True)
         was_stopped = False
         while not signals.wait(0.5):

@@ -1,7 +1,8 @@
 """``fasthex mocap list|watch URI``: what a lab checks before every flight.
 
-- ``list``: the rigid bodies the server defines (NatNet: name, id, marker count) or the
-  trackers it announces (VRPN), with the server's name, version and stream rate.
+- ``list``: the rigid bodies the server defines (NatNet: name, id, marker count; QTM: index
+  and name of each 6DOF body) or the trackers it announces (VRPN), with the server's name,
+  version and stream rate.
 - ``watch [--body NAME] [--interval S] [--frames N]``: one live terminal line with the
   world-frame pose (m, deg), the measured rate, the latency, the age and the dropped/invalid
   counts, refreshed every ``--interval`` seconds (on a fixed grid: a late line does not shift
@@ -13,6 +14,7 @@ URIs (see :mod:`drivers.mocap.uri`)::
     natnet://192.168.1.10?local=192.168.1.20&mode=multicast   Motive on the lab network
     vrpn://Tracker0@127.0.0.1:3883                             VRPN tracker (Vicon, QTM)
     motioncapture://vicon?host=192.168.1.5&body=fasthex      Vicon through libmotioncapture
+    qtm://192.168.1.10?body=fasthex                            Qualisys QTM RT (TCP 22223)
 
 Try it against the emulated vehicle: ``fasthex emulate`` prints the MoCap URI to use.
 """
@@ -29,10 +31,11 @@ if TYPE_CHECKING:
     from drivers.mocap.motioncapture_client import MotionCaptureClient
     from drivers.mocap.natnet_client import NatNetClient
     from drivers.mocap.pose import FrameWaits, MocapStats, PoseSample
+    from drivers.mocap.qtm_client import QtmClient
     from drivers.mocap.vrpn_client import VrpnClient
 
 NAME = "mocap"
-HELP = "list MoCap rigid bodies or watch one live (NatNet, VRPN or motioncapture URI)"
+HELP = "list MoCap rigid bodies or watch one live (NatNet, VRPN, QTM or motioncapture URI)"
 
 
 URI_HELP = """MoCap URIs:
@@ -50,11 +53,20 @@ URI_HELP = """MoCap URIs:
   motioncapture://vicon|optitrack|qualisys|vrpn?host=HOST&body=NAME&up=y|z&units=m|mm
       any system libmotioncapture reads (pip install "fasthex[motioncapture]"); Vicon's
       DataStream this way; up axis z (y for optitrack).
+  qtm://HOST[:PORT]?body=NAME&component=6d|6dres|6deuler|6deulerres&frequency_hz=F&udp=0|1
+           &local=IP&up=y|z&units=m|mm&latency_ms=F
+      Qualisys QTM RT; PORT = little-endian RT port (22223); body = 6DOF body name (default:
+      the first); frequency_hz = stream rate (default every frame); udp=1 streams frames over
+      UDP; Z-up millimetres by default.
 examples:
   fasthex mocap list  "natnet://127.0.0.1?local=127.0.0.1&mode=unicast"
   fasthex mocap watch "natnet://192.168.1.10?local=192.168.1.20&mode=multicast" --body fasthex
   fasthex mocap watch vrpn://Tracker0@127.0.0.1:3883
+  fasthex mocap watch "qtm://192.168.1.10?body=fasthex"
 """
+
+
+URI_ARG_HELP = "natnet://SERVER?..., vrpn://TRACKER@HOST or qtm://HOST?..."
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -64,12 +76,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p_list = sub.add_parser("list", help="list the rigid bodies / trackers of a MoCap server",
                             epilog=URI_HELP,
                             formatter_class=argparse.RawDescriptionHelpFormatter)
-    p_list.add_argument("uri", metavar="URI", help="natnet://SERVER?... or vrpn://TRACKER@HOST")
+    p_list.add_argument("uri", metavar="URI", help=URI_ARG_HELP)
     p_watch = sub.add_parser("watch", help="show the live pose, rate and latency of one body",
                              epilog=URI_HELP,
                              formatter_class=argparse.RawDescriptionHelpFormatter)
-    p_watch.add_argument("uri", metavar="URI", help="natnet://SERVER?... or vrpn://TRACKER@HOST")
-    p_watch.add_argument("--body", default="", help="rigid-body name (NatNet); default: "
+    p_watch.add_argument("uri", metavar="URI", help=URI_ARG_HELP)
+    p_watch.add_argument("--body", default="", help="rigid-body name (NatNet, QTM); default: "
                          "the URI's body option, else the first defined")
     p_watch.add_argument("--frames", type=int, default=0,
                          help="stop after this many frames (0: until Ctrl-C)")
@@ -77,14 +89,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                          help="seconds between status lines (default 0.2)")
 
 
-def _open(uri: str, body: str = "") -> NatNetClient | VrpnClient | MotionCaptureClient:
+def _open(uri: str, body: str = ""
+          ) -> NatNetClient | VrpnClient | MotionCaptureClient | QtmClient:
     from drivers.mocap.pose import MocapError
     from drivers.mocap.uri import MocapUriError, open_pose_source
     from groundstation.cli import UserError
 
     try:
         dev = open_pose_source(uri, body=body) \
-            if body and uri.startswith(("natnet:", "motioncapture:")) else open_pose_source(uri)
+            if body and uri.startswith(("natnet:", "motioncapture:", "qtm:")) \
+            else open_pose_source(uri)
         dev.start()
     except (MocapUriError, MocapError) as exc:
         raise UserError(str(exc)) from exc
@@ -93,6 +107,7 @@ def _open(uri: str, body: str = "") -> NatNetClient | VrpnClient | MotionCapture
 
 def _list(uri: str) -> int:
     from drivers.mocap.natnet_client import NatNetClient
+    from drivers.mocap.qtm_client import QtmClient
     from drivers.mocap.vrpn_client import VrpnClient
 
     dev = _open(uri)
@@ -109,6 +124,12 @@ def _list(uri: str) -> int:
                 print(f"  {rb.body_id:4d}  {rb.name:24s} {len(rb.marker_positions)} markers")
             if not dev.models.rigid_bodies:
                 print("  (no rigid bodies defined)")
+        elif isinstance(dev, QtmClient):
+            dev.wait_frames(50, 2.0)
+            st = dev.stats()
+            print(f"QTM RT {dev.config.name}, {dev.config.component}, {st.rate_hz:.0f} Hz")
+            for index, name in enumerate(dev.bodies()):
+                print(f"  {index:4d}  {name}")
         else:
             dev.wait_for_rate(2.0)
             st = dev.stats()

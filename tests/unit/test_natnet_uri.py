@@ -1,4 +1,4 @@
-"""MoCap URIs (natnet://, vrpn://) -> device configs, and clear errors for bad ones."""
+"""MoCap URIs (natnet://, vrpn://, qtm://) -> device configs, and clear errors for bad ones."""
 
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ import pytest
 
 from drivers.mocap.natnet_client import NatNetClient, NatNetConfig
 from drivers.mocap.pose import PoseSource
+from drivers.mocap.qtm_client import QtmClient, QtmConfig
 from drivers.mocap.uri import MocapUriError, open_pose_source, parse_uri
 from drivers.mocap.vrpn_client import VrpnClient, VrpnConfig
 
@@ -43,6 +44,21 @@ def test_that_a_vrpn_uri_can_choose_the_handshake() -> None:
     assert isinstance(cfg, VrpnConfig) and cfg.handshake == "tcp"
 
 
+def test_that_a_qtm_uri_sets_every_option_and_defaults_to_z_up_millimetres() -> None:
+    assert parse_uri("qtm://127.0.0.1") == QtmConfig()
+    assert (QtmConfig().port, QtmConfig().frames.up_axis, QtmConfig().frames.units) == \
+        (22223, "z", "mm")
+    cfg = parse_uri("qtm://192.168.1.10:22300?body=fasthex&component=6deuler&frequency_hz=50"
+                    "&udp=1&local=192.168.1.20&latency_ms=4&range_m=20")
+    assert isinstance(cfg, QtmConfig)
+    assert (cfg.host, cfg.port, cfg.body, cfg.component, cfg.frequency_hz) == \
+        ("192.168.1.10", 22300, "fasthex", "6deuler", 50.0)
+    assert (cfg.udp, cfg.local_ip, cfg.limits.max_range_m) == (True, "192.168.1.20", 20.0)
+    assert cfg.latency_s == pytest.approx(0.004)
+    assert cfg.stream_command(6734) == "StreamFrames Frequency:50 UDP:6734 6deuler"
+    assert isinstance(open_pose_source("qtm://127.0.0.1", body="pad"), QtmClient)
+
+
 @pytest.mark.parametrize("uri,fragment", [
     ("natnet://127.0.0.1?moda=unicast", "unknown option"),
     ("natnet://127.0.0.1?mode=broadcast", "mode"),
@@ -53,7 +69,11 @@ def test_that_a_vrpn_uri_can_choose_the_handshake() -> None:
     ("vrpn://T@127.0.0.1?sensor=one", "one"),
     ("vrpn://T@127.0.0.1?handshake=udp", "handshake"),
     ("natnet://127.0.0.1?version=3.1&require_version=yes", "require_version"),
-    ("qtm://127.0.0.1", "unknown scheme"),
+    ("vicon://127.0.0.1", "unknown scheme"),
+    ("qtm://?body=hex", "no QTM host"),
+    ("qtm://127.0.0.1?component=3d", "component"),
+    ("qtm://127.0.0.1?udp=yes", "udp must be 0 or 1"),
+    ("qtm://127.0.0.1?frequency=100", "unknown option"),
 ])
 def test_that_a_bad_uri_is_a_typed_error_naming_it(uri: str, fragment: str) -> None:
     with pytest.raises(MocapUriError, match=fragment) as info:

@@ -46,8 +46,10 @@ def test_that_every_shipped_session_loads() -> None:
      "backend.imu_rate_hz: expected a number >= 100 and <= 2000, got 5000.0"),
     ("  seed: 1\n", "  seed: 1\n  flight_ctrl_uri: /dev/ttyUSB0\n", "flight_ctrl_uri",
      "backend.flight_ctrl_uri: unknown key; expected one of: board_clock_ppm, clock, "
-     "corrupt_prob, disturbances, faults, imu_rate_hz, kind, mocap_clock_offset_s, "
+     "corrupt_prob, disturbances, faults, imu_rate_hz, kind, mocap, mocap_clock_offset_s, "
      "mocap_clock_ppm, seed"),
+    ("  seed: 1\n", "  seed: 1\n  mocap: vicon\n", "mocap",
+     "backend.mocap: expected one of 'natnet', 'qtm'; got 'vicon'"),
 ])
 def test_that_a_malformed_session_gives_its_precise_message(
         tmp_path: Path, old: str, new: str, fragment: str, message: str) -> None:
