@@ -90,3 +90,46 @@ def test_that_without_numba_the_filter_uses_the_numpy_kernel(
     # Assert
     assert est.kernel_name == "numpy"
     assert isinstance(est._kernel, FastKernel)
+
+
+_NO_COMPILE_IN_TICKS = r"""
+import json, numpy as np
+from numba.core import event
+from estimator import Ukf, EstimatorConfig, compiled
+import numba
+
+def dispatchers():
+    return {n: f for n, f in vars(compiled).items()
+            if isinstance(f, numba.core.registry.CPUDispatcher)}
+
+ukf = Ukf(EstimatorConfig())     # start-up: compiles or loads every kernel here
+before = {n: len(f.overloads) for n, f in dispatchers().items()}
+with event.install_recorder("numba:compile") as rec:
+    ukf.initialize(0.0, (0.0, 0.0, 1.0), (1.0, 0.0, 0.0, 0.0))
+    for k in range(1, 400):         # as the loop feeds it: tuples, a late pose every 5th tick
+        t = 0.002 * k
+        ukf.predict(t, (0.01, -0.02, 0.0), (0.1, 0.0, 9.81), (0.0, 0.0, 14.0))
+        if k % 5 == 0:
+            ukf.update_pose(t - 0.006, (0.0, 0.0, 1.0 + 1e-4), (1.0, 0.0, 0.0, 0.0))
+        ukf.estimate()
+after = {n: len(f.overloads) for n, f in dispatchers().items()}
+print(json.dumps({"compiles": len(rec.buffer), "before": before, "after": after}))
+"""
+
+
+def test_that_no_tick_waits_on_a_compile() -> None:
+    # Fixture: a fresh interpreter, so nothing compiled by other tests hides a lazy compile
+    if not compiled.AVAILABLE:
+        pytest.skip("numba not installed: nothing is compiled")
+    import json
+    import subprocess
+    import sys
+    out = subprocess.run([sys.executable, "-c", _NO_COMPILE_IN_TICKS], capture_output=True,
+                         text=True, check=True, timeout=300)
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    # Assert: every kernel the ticks use was ready after the constructor (compiled or loaded
+    # from the cache there), and 400 ticks with poses neither compiled nor loaded another
+    assert got["compiles"] == 0
+    assert got["after"] == got["before"]
+    used = ("predict_step", "update_step", "predict", "update")
+    assert all(got["before"][name] == 1 for name in used), got["before"]
