@@ -6,16 +6,22 @@ compiled in: ``vicon`` (Vicon DataStream SDK, TCP 801; the only way to read Vico
 stream, whose SDK has no other Python binding that builds offline), ``optitrack`` (NatNet),
 ``qualisys`` (QTM RT) and ``vrpn`` (the mainline VRPN 07.38 client: the classic UDP request
 and TCP call-back). What this module relies on from it, all it offers to Python:
-``motioncapture.connect(system, {"hostname": host})``, ``waitForNextFrame()`` (blocks in C++
-with the GIL released) and ``rigidBodies`` (name -> position (3,) in metres, rotation
-quaternion ``w, x, y, z``), holding the bodies updated in that frame.
+``motioncapture.connect(system, options)`` (``hostname``, and ``port`` for qualisys),
+``waitForNextFrame()`` (blocks in C++ with the GIL released) and ``rigidBodies`` (name ->
+position (3,) in metres, rotation quaternion ``w, x, y, z``), holding the bodies updated in
+that frame.
 
 URI (see :mod:`drivers.mocap.uri`): ``motioncapture://SYSTEM?host=HOST&body=NAME&up=y|z``
 ``&units=m|mm&latency_ms=F&stale_ms=F&range_m=F``; ``host`` is passed as libmotioncapture's
-``hostname`` (VRPN takes ``HOST:PORT``). Frames: the position and attitude are in the
-system's world axes; ``up`` defaults to ``z`` for vicon, qualisys and vrpn (Vicon Tracker and
-QTM are Z-up) and to ``y`` for optitrack (Motive's default), and the pose is converted into
-the ground-station world frame by :class:`drivers.mocap.frames.FrameTransform`.
+``hostname``; ``vrpn`` and ``vicon`` take ``HOST:PORT`` there as it is (VRPN 3883, DataStream
+801). ``qualisys`` takes ``HOST:PORT`` with ``PORT`` the little-endian RT port QTM listens on
+(22223, as ``qtm://``): the library's ``port`` option is QTM's base port and its RT SDK
+connects to base + 1, so the adapter passes ``PORT - 1`` (without a port, the library's base
+22222, i.e. 22223). The qualisys backend streams frames over UDP to the fixed local port 6734:
+one such reader per PC. Frames: the position and attitude are in the system's world axes;
+``up`` defaults to ``z`` for vicon, qualisys and vrpn (Vicon Tracker and QTM are Z-up) and to
+``y`` for optitrack (Motive's default), and the pose is converted into the ground-station
+world frame by :class:`drivers.mocap.frames.FrameTransform`.
 
 Device behaviour, as the VRPN client's (:mod:`drivers.mocap.vrpn_client`): libmotioncapture
 gives no frame number, latency or validity flag to Python, so ``frame_number`` counts the
@@ -30,6 +36,17 @@ raises :class:`~drivers.mocap.pose.MocapConnectError` (no frame at all) or
 :class:`~drivers.mocap.pose.UnknownBodyError` (listing the bodies seen). A C++ wait cannot be
 interrupted: ``close()`` stops the thread once its current wait returns (a silent server can
 keep it, a daemon, until the process ends).
+
+Known limitation, the GIL: ``motioncapture.connect`` (the library's connect and handshake) does
+not release the GIL, so while it runs every Python thread of the process stops, the caller of
+``start()`` and its timeout included. Against a server that answers this is short (qualisys:
+about 2 ms on loopback); against a wrong or silent host it lasts the library's own timeout, or
+for ever. Measured with ``motioncapture`` 1.1: ``qualisys`` froze the process for 5.0 s before
+failing (a silent port, an unreachable host), ``vrpn`` for 1.0 s (an unreachable host), and
+``vicon`` (a refused port) and ``optitrack`` (a silent host) had not returned after 40 s. So
+start the adapter before anything timed runs (it connects once, never again), and an emulated
+server for it must run in another process. ``waitForNextFrame`` does release the GIL (a ticker
+thread kept its rate while it streamed 200 Hz), so once connected the adapter starves nothing.
 """
 
 from __future__ import annotations
@@ -83,6 +100,11 @@ class MotionCaptureConfig:
             raise ConfigValueError("host", "must name the MoCap server")
         if not self.body:
             raise ConfigValueError("body", "must name the rigid body")
+        if self.system == "qualisys" and ":" in self.host:
+            port = self.host.rpartition(":")[2]
+            if not port.isdigit() or not 2 <= int(port) <= 65535:  # base port = PORT - 1 >= 1
+                raise ConfigValueError("host", f"HOST:PORT needs a TCP port 2..65535, not "
+                                       f"{port!r}")
         if not 0.0 <= self.latency_s <= self.limits.max_latency_s:
             raise ConfigValueError("latency_s", f"must be in 0..{self.limits.max_latency_s} s")
         if not self.stale_after_s > 0.0 or not self.connect_timeout_s > 0.0:
@@ -96,8 +118,8 @@ class MotionCaptureConfig:
 class MotionCaptureClient(FrameWaits):
     """A :class:`~drivers.mocap.pose.PoseSource` reading one body through libmotioncapture.
 
-    ``connect`` builds the library's object from ``(system, {"hostname": host})``; tests may
-    pass another factory with the same interface."""
+    ``connect`` builds the library's object from ``(system, library_options(system, host))``;
+    tests may pass another factory with the same interface."""
 
     def __init__(self, config: MotionCaptureConfig,
                  clock: Callable[[], int] = time.monotonic_ns,
@@ -164,7 +186,7 @@ class MotionCaptureClient(FrameWaits):
     def _run(self, connect: Callable[[str, dict[str, str]], Any]) -> None:
         cfg = self.config
         try:
-            mc = connect(cfg.system, {"hostname": cfg.host})
+            mc = connect(cfg.system, library_options(cfg.system, cfg.host))
             while not self._stop.is_set():
                 mc.waitForNextFrame()
                 bodies = mc.rigidBodies
@@ -224,6 +246,17 @@ class MotionCaptureClient(FrameWaits):
             return dict.fromkeys(sorted(self._seen_bodies), 0)
 
 
+def library_options(system: str, host: str) -> dict[str, str]:
+    """libmotioncapture's connect options for ``host`` as the URI gives it (see module)."""
+    if system != "qualisys":
+        return {"hostname": host}
+    name, sep, port = host.rpartition(":")
+    if not sep:
+        return {"hostname": host}
+    # the library's port is QTM's base port; its RT SDK adds 1 (the little-endian port)
+    return {"hostname": name, "port": str(int(port) - 1)}
+
+
 def _library_connect(device: str) -> Callable[[str, dict[str, str]], Any]:
     try:
         module = importlib.import_module("motioncapture")
@@ -234,4 +267,4 @@ def _library_connect(device: str) -> Callable[[str, dict[str, str]], Any]:
     return connect
 
 
-__all__ = ["SYSTEM_UP_AXIS", "MotionCaptureClient", "MotionCaptureConfig"]
+__all__ = ["SYSTEM_UP_AXIS", "MotionCaptureClient", "MotionCaptureConfig", "library_options"]

@@ -22,8 +22,12 @@ Forms (options are query parameters; defaults in brackets):
 
 ``motioncapture://SYSTEM?host=HOST&body=NAME&up=y|z&units=m|mm&latency_ms=F&stale_ms=F&range_m=F``
     Any system libmotioncapture reads (optional extra ``fasthex[motioncapture]``): ``vicon``
-    (Vicon DataStream), ``optitrack``, ``qualisys``, ``vrpn`` (``host`` as ``HOST:PORT``).
-    ``up`` [z; y for optitrack]; the other options as for VRPN. Example:
+    (Vicon DataStream; ``host`` may be ``HOST:PORT`` [801]), ``optitrack``, ``qualisys``
+    (``HOST:PORT`` names QTM's little-endian RT port [22223] as ``qtm://`` does; the library
+    takes the base port below it, so the adapter passes ``PORT - 1``; frames come over UDP to
+    the fixed local port 6734), ``vrpn`` (``host`` as ``HOST:PORT`` [3883]). ``up`` [z; y for
+    optitrack]; the other options as for VRPN. The library's connect holds the GIL (see
+    :mod:`drivers.mocap.motioncapture_client`). Example:
     ``motioncapture://vicon?host=192.168.1.5&body=fasthex``.
 
 ``qtm://HOST[:PORT]?body=NAME&component=6d|6dres|6deuler|6deulerres&frequency_hz=F&udp=0|1&local=IP&up=y|z&units=m|mm&latency_ms=F&range_m=F``

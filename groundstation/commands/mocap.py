@@ -52,7 +52,8 @@ URI_HELP = """MoCap URIs:
       handshake: the classic UDP request and call-back, then direct TCP after 1 s (auto).
   motioncapture://vicon|optitrack|qualisys|vrpn?host=HOST&body=NAME&up=y|z&units=m|mm
       any system libmotioncapture reads (pip install "fasthex[motioncapture]"); Vicon's
-      DataStream this way; up axis z (y for optitrack).
+      DataStream this way; host may be HOST:PORT (qualisys: the RT port, 22223); up axis z
+      (y for optitrack).
   qtm://HOST[:PORT]?body=NAME&component=6d|6dres|6deuler|6deulerres&frequency_hz=F&udp=0|1
            &local=IP&up=y|z&units=m|mm&latency_ms=F
       Qualisys QTM RT; PORT = little-endian RT port (22223); body = 6DOF body name (default:

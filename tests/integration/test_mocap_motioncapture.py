@@ -4,7 +4,8 @@ adapter its thread, frame conversion and health.
 
 NatNet is not used here: libmotioncapture's OptiTrack backend joins the multicast group on the
 default-route interface, and tests send multicast on loopback only (see
-``test_mocap_natnet_peer.py``)."""
+``test_mocap_natnet_peer.py``). The adapter over the emulated QTM server is in
+``test_mocap_qtm.py``, on one worker with the library's other use of its fixed UDP port 6734."""
 
 from __future__ import annotations
 

@@ -14,7 +14,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.mocap.frames import FrameConfig, quat_angle_rad
-from drivers.mocap.motioncapture_client import MotionCaptureClient, MotionCaptureConfig
+from drivers.mocap.motioncapture_client import (
+    MotionCaptureClient,
+    MotionCaptureConfig,
+    library_options,
+)
 from drivers.mocap.pose import TrackingStatus, UnknownBodyError
 from drivers.mocap.uri import MocapUriError, parse_uri
 
@@ -136,6 +140,28 @@ def test_that_each_system_takes_its_world_up_axis_by_default(uri: str, up: str) 
 def test_that_a_bad_motioncapture_uri_is_a_typed_error(uri: str, fragment: str) -> None:
     with pytest.raises(MocapUriError, match=fragment):
         parse_uri(uri)
+
+
+@pytest.mark.parametrize("system,host,options", [
+    # QTM's RT port in the URI; the library wants the base port below it
+    ("qualisys", "10.0.0.4:22223", {"hostname": "10.0.0.4", "port": "22222"}),
+    ("qualisys", "10.0.0.4", {"hostname": "10.0.0.4"}),  # the library's default: 22222 + 1
+    ("vrpn", "10.0.0.4:3883", {"hostname": "10.0.0.4:3883"}),  # VRPN parses HOST:PORT itself
+    ("vicon", "10.0.0.4:801", {"hostname": "10.0.0.4:801"})])
+def test_that_the_host_becomes_the_library_options_of_each_system(
+        system: str, host: str, options: dict[str, str]) -> None:
+    assert library_options(system, host) == options
+    lib = ScriptedLibrary([{"hex": RigidBody((0.0, 0.0, 1.0), Quaternion(1, 0, 0, 0))}])
+    cfg = parse_uri(f"motioncapture://{system}?host={host}&body=hex")
+    assert isinstance(cfg, MotionCaptureConfig)
+    with MotionCaptureClient(cfg, connect=lib.connect):
+        assert lib.connected == (system, options)
+
+
+@pytest.mark.parametrize("host", ["h:", "h:1", "h:65536", "h:port"])
+def test_that_a_qualisys_host_port_out_of_range_is_a_typed_error(host: str) -> None:
+    with pytest.raises(MocapUriError, match=r"TCP port 2\.\.65535"):
+        parse_uri(f"motioncapture://qualisys?host={host}&body=b")
 
 
 _floats = st.floats(allow_nan=True, allow_infinity=True, width=32)
