@@ -40,6 +40,7 @@ from drivers.errors import DeviceLostError, DriverError
 from drivers.mikrokopter.device import LinkHealth
 from estimator.types import HealthFlag
 from estimator.ukf import PoseVerdict, Ukf
+from groundstation.console import number
 from groundstation.flight import (
     FLYING,
     FlightState,
@@ -586,7 +587,7 @@ class FlightLoop:
                 if math.isfinite(mstats.clock_drift_ppm)
                 else "")),
             ("estimator converged", initialized and self.ukf.health().ok,
-             f"flags {self.ukf.health().flags!r}"),
+             f"flags {self.ukf.health().flags.name or 'none'}"),
             ("vehicle at the mission's start position",
              initialized and offset < self.opts.max_start_offset_m,
              f"{offset * 1e3:.0f} mm away" if initialized else "no estimate yet"),
@@ -666,11 +667,13 @@ class FlightLoop:
 
     def _status_line(self, t_s: float, tick: ControlTick | None, alpha: float,
                      est: VehicleState, battery_v: float) -> str:
+        # "--" until known: no estimate-based error before the controller runs, no battery
+        # reading before the board's first B frame
         err = math.dist(est.pos_w_m, tick.ref.pos_w_m) * 1e3 if tick is not None else math.nan
         timing = self.timer.last_compute_s() * 1e3
-        return (f"{self.sm.state.name:9s} t {t_s:7.2f} s  e_p {err:6.1f} mm  alpha "
-                f"{math.degrees(alpha):5.1f} deg  batt {battery_v:5.2f} V  tick "
-                f"{timing:.2f} ms  misses {self.timer.deadline_misses}")
+        return (f"{self.sm.state.name:<9} {t_s:6.1f} s  pos. error {number(err, '5.1f', 'mm')}"
+                f"  tilt {math.degrees(alpha):4.1f} deg  battery {number(battery_v, '5.2f', 'V')}"
+                f"  tick {timing:4.2f} ms  late ticks {self.timer.deadline_misses}")
 
 
 class _Extremes:

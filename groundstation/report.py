@@ -29,7 +29,14 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from groundstation.metrics import MDT_MIN_DEG, PHASES, UDT_MAX_DEG, flight_metrics, quat_to_rot
+from groundstation.metrics import (
+    MDT_MIN_DEG,
+    PHASES,
+    UDT_MAX_DEG,
+    flight_metrics,
+    quat_to_rot,
+    rounded,
+)
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -128,9 +135,10 @@ def record_metrics(rows: np.ndarray, metadata: dict[str, Any]) -> dict[str, floa
                           max_spin_hz=params.rotors.max_spin_hz)
 
 
-def metrics_json(metrics: dict[str, float]) -> dict[str, float | None]:
-    """NaN -> None, the convention of ``fasthex simulate --json``."""
-    return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in metrics.items()}
+def metrics_json(metrics: dict[str, float]) -> dict[str, object]:
+    """As ``fasthex simulate --json`` writes them: NaN -> None, counts as integers, values
+    rounded to the resolution of their unit (:func:`groundstation.metrics.rounded`)."""
+    return {k: rounded(k, v) for k, v in metrics.items()}
 
 
 def _fmt(v: float) -> str:
