@@ -151,3 +151,31 @@ def test_that_the_record_path_comes_from_the_cli_then_the_session_then_the_defau
     assert re.fullmatch(r"s-\d{8}-\d{6}\.fhr", stamped.name)
     default = record_path(None, "", session_file, "s")
     assert default.parent == Path("flights") and default.name.startswith("s-")
+
+
+def test_that_replay_progress_is_drawn_on_a_terminal_and_erased_at_the_end() -> None:
+    from groundstation.commands.replay import Progress
+
+    class Tty(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    out = Tty()
+    sut = Progress(out, rows=100, duration_s=10.0)
+    sut.update(50, 5.0, force=True)
+    assert "50 %" in out.getvalue() and "5.0 of 10.0 s" in out.getvalue()
+    sut.done()
+    assert screen(out.getvalue()) == [""] or screen(out.getvalue()) == []
+    piped = io.StringIO()
+    Progress(piped, rows=100, duration_s=10.0).update(50, 5.0, force=True)
+    assert piped.getvalue() == ""
+
+
+def test_that_coinciding_cardan_curves_are_grouped() -> None:
+    import numpy as np
+
+    from groundstation.analysis import coinciding_groups
+
+    x = np.linspace(0.0, 1.0, 50)
+    curves = np.column_stack([x, 2 * x, x, 3 * x, 2 * x, x + 1e-3])
+    assert coinciding_groups(curves, tol=1e-9) == [[0, 2], [1, 4], [3], [5]]
