@@ -177,6 +177,7 @@ class FlightLoop:
                           "servo_sync_failures": 0, "imu_gap_max_us": 0,
                           "imu_gap_max_at_ms": 0}
         self._rx_errors = 0
+        self._faults_told = 0  # faults of the state machine already sent as events
         #: received / expected IMU samples over the last rate window (lockstep: from sequence
         #: numbers, so a degraded link is caught on the simulated clock too)
         self.imu_rate_fraction = 1.0
@@ -417,6 +418,8 @@ class FlightLoop:
                     tm = 0.0
                 land_here = self._act_on_transitions(prev_state, t_s, est_state) or land_here
                 prev_state = sm.state
+            elif len(sm.faults) != self._faults_told:  # a fault that changes no state (hold)
+                self._tell_faults()
 
             # 5. control
             spins = ZERO6
@@ -544,10 +547,14 @@ class FlightLoop:
                 yaw = math.atan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2))
                 land = LandHere(t_s, est.pos_w_m, (math.cos(yaw / 2), 0.0, 0.0,
                                                    math.sin(yaw / 2)), self.opts.ground_z_m)
-        for fault in sm.faults:
-            if fault.startswith(f"{t_s:.3f} s"):
-                self.event_sink(f"FAULT {fault}")
+        self._tell_faults()
         return land
+
+    def _tell_faults(self) -> None:
+        """Every fault the state machine recorded since the last call, as an event."""
+        for fault in self.sm.faults[self._faults_told:]:
+            self.event_sink(f"FAULT {fault}")
+        self._faults_told = len(self.sm.faults)
 
     def _preflight(self, t_s: float, est: VehicleState, servo: Any,
                    pose_age_s: float) -> bool:

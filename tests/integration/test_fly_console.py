@@ -132,3 +132,18 @@ def test_that_the_session_record_path_is_honoured_and_record_overrides_it(
     for key, value in configured.items():
         if isinstance(value, float):
             assert len(repr(value).split(".")[-1]) <= 6, (key, value)
+
+
+def test_that_a_fault_that_changes_no_state_is_an_event_when_it_happens(tmp_path: Path) -> None:
+    # Fixture: a silent servo with the hold action records a fault and stays in MISSION
+    from flight_support import fly
+
+    # Test
+    out = fly(tmp_path, faults="servo-silent@5.0", servo_action="hold")
+    # Assert: told once, in time order with the transitions around it
+    fault = next(f for f in out.result.faults if "tilt servo fault: holding" in f)
+    events = out.events_path.read_text().splitlines()
+    assert events.count(f"FAULT {fault}") == 1
+    told_at = events.index(f"FAULT {fault}")
+    assert "ARMED -> TAKEOFF" in " ".join(events[:told_at])  # the fault comes at 5 s
+    assert "-> DISARMED" in " ".join(events[told_at:])
