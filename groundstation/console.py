@@ -83,8 +83,11 @@ class Console:
                 status = self._status()
             except Exception:  # a half-built loop: show nothing rather than fail the flight
                 status = ""
-            # a status wider than the terminal would wrap, and the erase would miss a line
-            status = status[:max(0, _columns(self.stream) - 1)]
+            # a status wider than the terminal would wrap, and the erase would miss a line:
+            # cut it at the last field (two spaces apart) that fits
+            width = _columns(self.stream) - 1
+            if len(status) > width:
+                status = status[:width].rsplit("  ", 1)[0]
         if not out and status == self._shown:
             return
         text = "".join(out)
@@ -102,10 +105,12 @@ class Console:
 
 
 def _columns(stream: TextIO) -> int:
+    """The terminal's width; 80 when unknown (a pty nobody sized reports 0 columns)."""
     try:
-        return os.get_terminal_size(stream.fileno()).columns
+        columns = os.get_terminal_size(stream.fileno()).columns
     except (AttributeError, ValueError, OSError):
-        return 80
+        columns = 0
+    return columns if columns > 0 else 80
 
 
 def _isatty(stream: TextIO) -> bool:

@@ -678,9 +678,10 @@ class FlightLoop:
         # reading before the board's first B frame
         err = math.dist(est.pos_w_m, tick.ref.pos_w_m) * 1e3 if tick is not None else math.nan
         timing = self.timer.last_compute_s() * 1e3
-        return (f"{self.sm.state.name:<9} {t_s:6.1f} s  pos. error {number(err, '5.1f', 'mm')}"
+        # most important first: a narrow terminal cuts the end
+        return (f"{self.sm.state.name:<9} {t_s:5.1f} s  pos. error {number(err, '4.1f', 'mm')}"
                 f"  tilt {math.degrees(alpha):4.1f} deg  battery {number(battery_v, '5.2f', 'V')}"
-                f"  tick {timing:4.2f} ms  late ticks {self.timer.deadline_misses}")
+                f"  late ticks {self.timer.deadline_misses}  tick {timing:4.2f} ms")
 
 
 class _Extremes:

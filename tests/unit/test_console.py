@@ -179,3 +179,26 @@ def test_that_coinciding_cardan_curves_are_grouped() -> None:
     x = np.linspace(0.0, 1.0, 50)
     curves = np.column_stack([x, 2 * x, x, 3 * x, 2 * x, x + 1e-3])
     assert coinciding_groups(curves, tol=1e-9) == [[0, 2], [1, 4], [3], [5]]
+
+
+def test_that_a_terminal_of_unknown_width_still_gets_a_status_line() -> None:
+    import os
+    import pty
+
+    from groundstation.console import _columns
+
+    master, slave = pty.openpty()  # never sized: the kernel reports 0 columns
+    try:
+        with os.fdopen(os.dup(slave), "w") as stream:
+            assert _columns(stream) == 80
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+def test_that_a_status_wider_than_the_terminal_is_cut_between_fields() -> None:
+    out = io.StringIO()  # not a terminal: 80 columns assumed
+    line = "MISSION    12.1 s  pos. error  7.2 mm  tilt  0.0 deg  battery 16.03 V  late ticks 2113"
+    sut = Console(out, live=True, status=lambda: line + "  tick 0.39 ms")
+    sut._flush(show_status=True)
+    assert out.getvalue() == line[:line.rindex("  late")]
