@@ -10,6 +10,7 @@ dictionary for ``--json``: counts as integers, measurements to their resolution.
 from __future__ import annotations
 
 import math
+import re
 import textwrap
 from typing import Any
 
@@ -18,8 +19,8 @@ from groundstation.metrics import MDT_MIN_DEG, PHASES, SETTLE_S, UDT_MAX_DEG, ro
 
 #: the phases of groundstation.metrics as column titles (two lines each)
 PHASE_TITLES = {"all": ("whole mission", "measured part"),
-                "udt": ("under-actuated", f"tilt < {UDT_MAX_DEG:g} deg"),
-                "mdt": ("multi-directional", f"tilt > {MDT_MIN_DEG:g} deg")}
+                "udt": ("UDT", f"tilt < {UDT_MAX_DEG:g} deg"),
+                "mdt": ("MDT", f"tilt > {MDT_MIN_DEG:g} deg")}
 
 #: metric rows: (label, unit shown, key without the phase prefix, scale, format)
 METRIC_ROWS: tuple[tuple[str, str, str, float, str], ...] = (
@@ -29,23 +30,25 @@ METRIC_ROWS: tuple[tuple[str, str, str, float, str], ...] = (
     ("roll error, mean", "deg", "roll_err_mean_deg", 1.0, ".3f"),
     ("pitch error, mean", "deg", "pitch_err_mean_deg", 1.0, ".3f"),
     ("yaw error, mean", "deg", "yaw_err_mean_deg", 1.0, ".3f"),
-    ("R_d away from reference, mean *", "deg", "rd_dev_mean_deg", 1.0, ".3f"),
-    ("R_d away from reference, max *", "deg", "rd_dev_max_deg", 1.0, ".3f"),
+    ("R_d off reference, mean *", "deg", "rd_dev_mean_deg", 1.0, ".3f"),
+    ("R_d off reference, max *", "deg", "rd_dev_max_deg", 1.0, ".3f"),
     ("attitude loop error, mean **", "deg", "inner_err_mean_deg", 1.0, ".3f"),
     ("rotor spin, min", "Hz", "spin_min_hz", 1.0, ".1f"),
     ("rotor spin, max", "Hz", "spin_max_hz", 1.0, ".1f"),
     ("rotors saturated", "% ticks", "spin_saturated_frac", 100.0, ".2f"),
-    ("internal force loss, mean ***", "%", "internal_force_loss_mean_frac", 100.0, ".1f"),
+    ("force loss, mean ***", "%", "internal_force_loss_mean_frac", 100.0, ".1f"),
 )
 
 NOTES = (
-    f"Phases: the measured part of the mission; under-actuated and multi-directional skip "
-    f"{SETTLE_S:g} s after entering the phase and after each tilt step.",
-    "*   R_d away from reference: how far the controller tilts its desired attitude R_d from "
+    f"UDT: under-actuated (tilt < {UDT_MAX_DEG:g} deg); MDT: multi-directional thrust (tilt > "
+    f"{MDT_MIN_DEG:g} deg). Both skip {SETTLE_S:g} s after entering the phase and after each "
+    "tilt step; the whole mission is its measured part (take-off and landing excluded).",
+    "*   R_d off reference: how far the controller tilts its desired attitude R_d from "
     "the reference to keep the position (the under-actuated trade-off; 0 when fully "
     "actuated).",
     "**  attitude loop error: actual attitude against R_d (the inner loop's tracking).",
-    "*** internal force loss: 1 - eta_f, thrust that cancels between tilted propellers.",
+    "*** force loss: 1 - eta_f, the internal force (thrust that cancels between tilted "
+    "propellers).",
 )
 
 
@@ -65,7 +68,7 @@ def metrics_table(summary: dict[str, Any]) -> list[str]:
     """The paper's metrics, one row per quantity (with its unit), one column per phase."""
     if "all_ticks" not in summary:
         return []
-    label_w, unit_w, col_w = 32, 8, 18
+    label_w, unit_w, col_w = 29, 8, 14  # 79 columns: an 80-column terminal does not wrap
     head1 = " " * (label_w + unit_w) + "".join(f"{PHASE_TITLES[p][0]:>{col_w}}" for p in PHASES)
     head2 = " " * (label_w + unit_w) + "".join(f"{PHASE_TITLES[p][1]:>{col_w}}" for p in PHASES)
     lines = [head1, head2]
@@ -114,7 +117,7 @@ def summary_text(summary: dict[str, Any], *, clock: str = "realtime",
     if table:
         lines += _section(f"Tracking, scored on the {s['state_source']}")
         lines += table
-        lines += ["", *(textwrap.fill(n, 100, subsequent_indent="    ") for n in NOTES)]
+        lines += ["", *(textwrap.fill(n, 79, subsequent_indent="    ") for n in NOTES)]
     elif "state_source" in s:
         lines += ["", f"no metrics: {s['state_source']}"]
 
@@ -150,4 +153,17 @@ def summary_text(summary: dict[str, Any], *, clock: str = "realtime",
                else "--rerun off")
         lines.append(f"dashboard:      none ({why}). To look at the flight: "
                      f"fasthex replay {record} (viewer), or --rerun save for a .rrd file")
-    return "\n".join(lines) + "\n"
+    return "\n".join(_fit(line) for line in lines) + "\n"
+
+
+_LABEL = re.compile(r"^[\w ().>-]+:\s+")
+
+
+def _fit(line: str, width: int = 79) -> str:
+    """A long ``label:  value`` line wrapped under its value (paths are never split)."""
+    if len(line) <= width:
+        return line
+    m = _LABEL.match(line)
+    indent = len(m.group(0)) if m and len(m.group(0)) < 24 else 4
+    return textwrap.fill(line, width, subsequent_indent=" " * indent, break_long_words=False,
+                         break_on_hyphens=False)

@@ -111,10 +111,11 @@ def test_that_the_summary_is_a_table_with_units_and_no_raw_keys() -> None:
     assert not re.search(r"\b(all|udt|mdt)_\w+", text)  # no raw metric keys
     assert not re.search(r"\b(nan|inf)\b", text)
     assert re.search(r"position error, mean\s+mm\s+1\.25\s+1\.25\s+--", text)
-    assert "under-actuated" in text and "R_d away from reference" in text
+    assert "under-actuated" in text and "R_d off reference" in text
     assert "none (--rerun auto and no display)" in text
     assert "fasthex report flights/x.fhr" in text
     assert "lockstep: the simulated clock waits" in text
+    assert max(len(line) for line in text.splitlines()) <= 79  # an 80-column terminal
 
 
 def test_that_a_saved_dashboard_file_is_named_with_how_to_open_it() -> None:
