@@ -129,6 +129,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             outcome = session.run()
         except SessionInterruptedError as exc:
+            console.stop()  # its last lines first; this one after, on a line of its own
             print(f"fasthex: {signals.describe()}: {exc}", file=sys.stderr)
             return 1
         except SessionError as exc:
