@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from controller.model import VehicleModel, cardan_tilts_rad
 from controller.params import VehicleParams
@@ -171,16 +172,22 @@ def write_plots(params: VehicleParams, result: VehicleAnalysis, out_dir: str) ->
     ax.legend(fontsize=8)
     written.append(_save(fig, out / "lateral_force_sets.png"))
 
-    fig, ax = plt.subplots(figsize=(6, 3.5))
+    fig, ax = plt.subplots(figsize=(7, 4.2))
     fine = np.radians(np.linspace(0.0, max_tilt, 1401))
     actual = np.degrees(np.abs(cardan_tilts_rad(fine, params.tilt.worm_ratio,
                                                 math.radians(params.tilt.cardan_bend_deg))))
-    for i in range(6):
-        ax.plot(np.degrees(fine), actual[:, i] - np.degrees(fine), label=f"propeller {i + 1}")
+    errors = actual - np.degrees(fine)[:, None]
+    # propellers at equal places in the chain share a curve: one trace per group, named so
+    for group in coinciding_groups(errors, tol=1e-9):
+        names = ", ".join(str(i + 1) for i in group)
+        label = (f"propellers {names} (same curve)" if len(group) > 1
+                 else f"propeller {names}")
+        ax.plot(np.degrees(fine), errors[:, group[0]], label=label)
     ax.set(xlabel="desired tilt alpha_des (deg)", ylabel="alpha_i - alpha_des (deg)",
            title="Cardan drive-train tilt error")
     ax.grid(True)
-    ax.legend(fontsize=8, ncol=2)
+    ax.legend(fontsize=8, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.2),
+              frameon=False)  # below the axes: the curves fill the plot
     written.append(_save(fig, out / "cardan_errors.png"))
 
     fig, ax = plt.subplots(figsize=(6, 3.5))
@@ -193,6 +200,20 @@ def write_plots(params: VehicleParams, result: VehicleAnalysis, out_dir: str) ->
     ax.legend()
     written.append(_save(fig, out / "lateral_bound_fit.png"))
     return written
+
+
+def coinciding_groups(curves: npt.NDArray[np.float64], tol: float = 1e-6) -> list[list[int]]:
+    """Columns of ``curves`` (N, k) that are equal within ``tol``, grouped (0-based, in order).
+    Used to say which traces lie on top of each other."""
+    groups: list[list[int]] = []
+    for i in range(curves.shape[1]):
+        for g in groups:
+            if np.allclose(curves[:, i], curves[:, g[0]], atol=tol, rtol=0.0, equal_nan=True):
+                g.append(i)
+                break
+        else:
+            groups.append([i])
+    return groups
 
 
 def _save(fig: Any, path: Any) -> str:

@@ -30,12 +30,24 @@ def _command_modules() -> list[ModuleType]:
     return mods
 
 
+def version() -> str:
+    """The installed package's version (``pyproject.toml``)."""
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as dist_version
+
+    try:
+        return dist_version("fasthex")
+    except PackageNotFoundError:  # run from a source tree that was never installed
+        return "unknown (not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="fasthex",
         description="Ground station for the FAST-Hex tilting hexarotor (500 Hz, real or "
         "emulated hardware).",
     )
+    parser.add_argument("--version", action="version", version=f"fasthex {version()}")
     parser.add_argument("-v", "--verbose", action="count", default=0,
                         help="more log output (-vv for debug)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")

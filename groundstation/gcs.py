@@ -43,7 +43,7 @@ import logging
 import os
 import queue
 import sys
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -253,10 +253,12 @@ class SessionGcs:
 
 
 def start_gcs(options: GcsOptions, params: Any, status: Any, commands: Any,
-              events_path: str, echo_events: bool) -> SessionGcs | None:
+              events_path: str, echo_events: bool | Callable[[str], None]
+              ) -> SessionGcs | None:
     """The telemetry process's link: bridge up and serving, its security notice in the
-    events file (and on stderr when events are echoed). A link that cannot open (a udpin
-    port in use) is one event line and no link: the flight record matters more."""
+    events file (and to ``echo_events`` when it is a callable, on stderr when it is True). A
+    link that cannot open (a udpin port in use) is one event line and no link: the flight
+    record matters more."""
     gcs: SessionGcs | None = None
     try:
         gcs = SessionGcs(options, params, status, commands)
@@ -269,7 +271,9 @@ def start_gcs(options: GcsOptions, params: Any, status: Any, commands: Any,
             if gcs is not None:
                 gcs.bridge.post_event(line, op.Severity.WARNING if "WARNING" in line
                                       else op.Severity.INFO)
-            if echo_events:
+            if callable(echo_events):
+                echo_events(line)
+            elif echo_events:
                 with contextlib.suppress(OSError):
                     print(line, file=sys.stderr, flush=True)
     return gcs

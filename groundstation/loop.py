@@ -40,6 +40,7 @@ from drivers.errors import DeviceLostError, DriverError
 from drivers.mikrokopter.device import LinkHealth
 from estimator.types import HealthFlag
 from estimator.ukf import PoseVerdict, Ukf
+from groundstation.console import number
 from groundstation.flight import (
     FLYING,
     FlightState,
@@ -179,6 +180,7 @@ class FlightLoop:
                           "servo_sync_failures": 0, "imu_gap_max_us": 0,
                           "imu_gap_max_at_ms": 0}
         self._rx_errors = 0
+        self._faults_told = 0  # faults of the state machine already sent as events
         #: received / expected IMU samples over the last rate window (lockstep: from sequence
         #: numbers, so a degraded link is caught on the simulated clock too)
         self.imu_rate_fraction = 1.0
@@ -422,6 +424,8 @@ class FlightLoop:
                     tm = 0.0
                 land_here = self._act_on_transitions(prev_state, t_s, est_state) or land_here
                 prev_state = sm.state
+            elif len(sm.faults) != self._faults_told:  # a fault that changes no state (hold)
+                self._tell_faults()
 
             # 5. control
             spins = ZERO6
@@ -555,10 +559,14 @@ class FlightLoop:
                 yaw = math.atan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2))
                 land = LandHere(t_s, est.pos_w_m, (math.cos(yaw / 2), 0.0, 0.0,
                                                    math.sin(yaw / 2)), self.opts.ground_z_m)
-        for fault in sm.faults:
-            if fault.startswith(f"{t_s:.3f} s"):
-                self.event_sink(f"FAULT {fault}")
+        self._tell_faults()
         return land
+
+    def _tell_faults(self) -> None:
+        """Every fault the state machine recorded since the last call, as an event."""
+        for fault in self.sm.faults[self._faults_told:]:
+            self.event_sink(f"FAULT {fault}")
+        self._faults_told = len(self.sm.faults)
 
     def _preflight(self, t_s: float, est: VehicleState, servo: Any,
                    pose_age_s: float) -> bool:
@@ -598,7 +606,7 @@ class FlightLoop:
                 if math.isfinite(mstats.clock_drift_ppm)
                 else "")),
             ("estimator converged", initialized and self.ukf.health().ok,
-             f"flags {self.ukf.health().flags!r}"),
+             f"flags {self.ukf.health().flags.name or 'none'}"),
             ("vehicle at the mission's start position",
              initialized and offset < self.opts.max_start_offset_m,
              f"{offset * 1e3:.0f} mm away" if initialized else "no estimate yet"),
@@ -678,11 +686,14 @@ class FlightLoop:
 
     def _status_line(self, t_s: float, tick: ControlTick | None, alpha: float,
                      est: VehicleState, battery_v: float) -> str:
+        # "--" until known: no estimate-based error before the controller runs, no battery
+        # reading before the board's first B frame
         err = math.dist(est.pos_w_m, tick.ref.pos_w_m) * 1e3 if tick is not None else math.nan
         timing = self.timer.last_compute_s() * 1e3
-        return (f"{self.sm.state.name:9s} t {t_s:7.2f} s  e_p {err:6.1f} mm  alpha "
-                f"{math.degrees(alpha):5.1f} deg  batt {battery_v:5.2f} V  tick "
-                f"{timing:.2f} ms  misses {self.timer.deadline_misses}")
+        # most important first: a narrow terminal cuts the end
+        return (f"{self.sm.state.name:<9} {t_s:5.1f} s  pos. error {number(err, '4.1f', 'mm')}"
+                f"  tilt {math.degrees(alpha):4.1f} deg  battery {number(battery_v, '5.2f', 'V')}"
+                f"  late ticks {self.timer.deadline_misses}  tick {timing:4.2f} ms")
 
 
 class _Extremes:

@@ -129,3 +129,34 @@ def flight_metrics(rows: np.ndarray, *, min_spin_hz: float | None = None,
         out["all_spin_within_limits"] = float(bool(
             s.size == 0 or (np.min(s) >= min_spin_hz - 1e-3 and np.max(s) <= max_spin_hz + 1e-3)))
     return out
+
+
+#: the resolution a value is worth printing to, by the unit at the end of its key: the
+#: measurements behind them are no finer (MoCap ~0.1 mm, timing ~1 us, servo ~0.1 deg)
+RESOLUTION_BY_UNIT: dict[str, int] = {  # decimal places
+    "mm": 2, "m": 4, "m_s": 4, "deg": 3, "rad": 5, "s": 3, "ms": 3, "us": 0, "hz": 2,
+    "frac": 4, "n": 3, "v": 3, "ppm": 1,
+}
+
+
+def rounded(key: str, value: object) -> object:
+    """``value`` as it should appear in JSON: whole-number floats of unitless keys (counts,
+    flags such as ``all_spin_within_limits``) and ``*_ticks`` as integers, other floats rounded
+    to the resolution of the unit their key ends with (6 significant digits without one), NaN
+    and infinities as None. Lists and dicts are rounded element by element."""
+    if isinstance(value, dict):
+        return {k: rounded(str(k), v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [rounded(key, v) for v in value]
+    if isinstance(value, bool) or not isinstance(value, float):
+        return value
+    if not math.isfinite(value):
+        return None
+    unit = next((u for u in sorted(RESOLUTION_BY_UNIT, key=len, reverse=True)
+                 if key.lower().endswith("_" + u)), None)
+    if key.endswith("_ticks") or (unit is None and value.is_integer()):
+        return int(value)
+    if unit is None:
+        return float(f"{value:.6g}")
+    out = round(value, RESOLUTION_BY_UNIT[unit])
+    return 0.0 if out == 0 else out  # no "-0.0"

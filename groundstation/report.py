@@ -29,7 +29,14 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from groundstation.metrics import MDT_MIN_DEG, PHASES, UDT_MAX_DEG, flight_metrics, quat_to_rot
+from groundstation.metrics import (
+    MDT_MIN_DEG,
+    PHASES,
+    UDT_MAX_DEG,
+    flight_metrics,
+    quat_to_rot,
+    rounded,
+)
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -128,9 +135,10 @@ def record_metrics(rows: np.ndarray, metadata: dict[str, Any]) -> dict[str, floa
                           max_spin_hz=params.rotors.max_spin_hz)
 
 
-def metrics_json(metrics: dict[str, float]) -> dict[str, float | None]:
-    """NaN -> None, the convention of ``fasthex simulate --json``."""
-    return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in metrics.items()}
+def metrics_json(metrics: dict[str, float]) -> dict[str, object]:
+    """As ``fasthex simulate --json`` writes them: NaN -> None, counts as integers, values
+    rounded to the resolution of their unit (:func:`groundstation.metrics.rounded`)."""
+    return {k: rounded(k, v) for k, v in metrics.items()}
 
 
 def _fmt(v: float) -> str:
@@ -160,20 +168,76 @@ def metrics_markdown(metrics: dict[str, float], title: str = "") -> str:
 # -- figure ----------------------------------------------------------------------------------
 _AXIS_COLORS = ("tab:red", "tab:green", "tab:blue")
 _SHADE = {UDT: ("#d62728", 0.12), FULL: ("#2ca02c", 0.10), MDT: ("#2ca02c", 0.10)}
+#: room around the measured range of a panel whose limits it sets
+_MARGIN = 0.15
+
+
+def measured_limits(data: FloatArray, measured: npt.NDArray[np.bool_]
+                    ) -> tuple[float, float] | None:
+    """y-limits that show every sample of the measured part of the flight with a margin, or
+    None when nothing was measured. The take-off and landing transients (a reference that
+    starts from the ground, a touchdown) would otherwise set the scale and flatten the
+    millimetre errors the panel is about."""
+    rows = np.asarray(data, dtype=np.float64).reshape(len(measured), -1)[measured]
+    finite = rows[np.isfinite(rows)]
+    if finite.size == 0:
+        return None
+    lo, hi = float(finite.min()), float(finite.max())
+    span = max(hi - lo, 1e-6)
+    return lo - _MARGIN * span, hi + _MARGIN * span
+
+
+def _limit_to_measured(ax: Any, t: FloatArray, data: FloatArray,
+                       measured: npt.NDArray[np.bool_], unit: str) -> None:
+    """Set the panel's y-limits by the measured part and annotate the largest excursion
+    outside them (value and time), rather than let it set the scale. An excursion within half
+    the measured span is simply shown (the limits grow to hold it)."""
+    limits = measured_limits(data, measured)
+    if limits is None:
+        return
+    lo, hi = limits
+    values = np.asarray(data, dtype=np.float64).reshape(len(t), -1)
+    finite = values[np.isfinite(values)]
+    span = hi - lo
+    if finite.size and finite.min() >= lo - 0.5 * span and finite.max() <= hi + 0.5 * span:
+        ax.set_ylim(min(lo, float(finite.min())), max(hi, float(finite.max())))
+        return
+    ax.set_ylim(lo, hi)
+    outside = np.where(np.isfinite(values), np.maximum(values - hi, lo - values), 0.0)
+    worst = np.unravel_index(int(np.argmax(outside)), outside.shape)
+    value, t_at = float(values[worst]), float(t[worst[0]])
+    edge = hi if value > hi else lo
+    ax.annotate(f"off scale: {value:.3g} {unit} at {t_at:.1f} s (not measured)",
+                xy=(t_at, edge), xytext=(8, -12 if value > hi else 12),
+                textcoords="offset points", fontsize=7, va="center",
+                arrowprops={"arrowstyle": "->", "lw": 0.6})
 
 
 def render_figure(rows: np.ndarray, path: str | Path, *, title: str = "",
                   min_spin_hz: float | None = None, max_spin_hz: float | None = None,
                   dpi: int = 110) -> Path:
     """Write the eight-panel figure of ``rows`` to ``path`` (PNG); returns the path."""
+    fig = build_figure(rows, title=title, min_spin_hz=min_spin_hz, max_spin_hz=max_spin_hz)
+    import matplotlib.pyplot as plt
+
+    out = Path(path)
+    fig.savefig(out, dpi=dpi)
+    plt.close(fig)
+    return out
+
+
+def build_figure(rows: np.ndarray, *, title: str = "", min_spin_hz: float | None = None,
+                 max_spin_hz: float | None = None) -> Any:
+    """The eight-panel matplotlib figure of ``rows`` (Agg backend), for saving or checking."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
 
     s = panel_signals(rows)
     t = s.t_s
-    fig, axes = plt.subplots(8, 1, sharex=True, figsize=(10.0, 16.0), constrained_layout=True)
+    fig, axes = plt.subplots(8, 1, sharex=True, figsize=(12.0, 17.0), constrained_layout=True)
     xyz = ("x", "y", "z")
     rpy = (r"$\phi$", r"$\theta$", r"$\psi$")
 
@@ -184,52 +248,67 @@ def render_figure(rows: np.ndarray, path: str | Path, *, title: str = "",
 
     ax = axes[0]
     lines(ax, s.pos_w_m, tuple(f"$p_{a}$" for a in xyz))
-    lines(ax, s.pos_ref_w_m, tuple(f"$p_{{{a},r}}$" for a in xyz), "--")
+    lines(ax, s.pos_ref_w_m, tuple(f"$p_{{{a},r}}$ (ref.)" for a in xyz), "--")
     ax.set_ylabel("position [m]")
     ax = axes[1]
     lines(ax, s.pos_err_mm, tuple(f"$e_{a}$" for a in xyz))
     ax.plot(t, s.pos_err_norm_mm, color="k", lw=0.8, label=r"$|e_p|$")
     ax.set_ylabel("pos. error [mm]")
+    _limit_to_measured(ax, t, np.column_stack([s.pos_err_mm, s.pos_err_norm_mm]), s.measured,
+                       "mm")
     lines(axes[2], s.eul_ref_deg, tuple(f"{a}$_r$" for a in rpy))
     axes[2].set_ylabel("ref. att. [deg]")
     ax = axes[3]
-    lines(ax, s.eul_des_deg, tuple(f"{a}$_d$" for a in rpy), "--")
+    lines(ax, s.eul_des_deg, tuple(f"{a}$_d$ (desired)" for a in rpy), "--")
     lines(ax, s.eul_deg, rpy)
     ax.set_ylabel("des./act. att. [deg]")
+    _limit_to_measured(ax, t, np.column_stack([s.eul_des_deg, s.eul_deg]), s.measured, "deg")
     lines(axes[4], s.att_err_deg, tuple(f"$e_{{{a[1:-1]}}}$" for a in rpy))
     axes[4].set_ylabel("att. error [deg]")
+    _limit_to_measured(axes[4], t, s.att_err_deg, s.measured, "deg")
     ax = axes[5]
     for i in range(s.spin_hz.shape[1]):
         ax.plot(t, s.spin_hz[:, i], lw=0.8, label=f"$w_{i + 1}$")
-    for lim in (min_spin_hz, max_spin_hz):
+    for lim, name in ((min_spin_hz, "min"), (max_spin_hz, "max")):
         if lim is not None:
             ax.axhline(lim, color="k", ls=":", lw=1.0)
+            ax.annotate(f"{name} {lim:g} Hz", xy=(1.0, lim), xycoords=("axes fraction", "data"),
+                        xytext=(-4, 3 if name == "min" else -9), textcoords="offset points",
+                        ha="right", fontsize=7)
+    if min_spin_hz is not None or max_spin_hz is not None:
+        ax.plot([], [], "k:", lw=1.0, label="spin limits")
     ax.set_ylabel("spin [Hz]")
     ax = axes[6]
     ax.plot(t, s.r_xy_n, color="k", lw=1.0, label=r"max $r_{xy}$")
     ax.plot(t, s.lat_force_n, color="tab:purple", lw=0.8, label=r"$|u_{f,xy}|$")
     ax.set_ylabel("lateral force [N]")
     ax = axes[7]
-    ax.plot(t, s.alpha_ref_deg, "--", color="k", lw=1.0, label=r"$\alpha_r$")
+    ax.plot(t, s.alpha_ref_deg, "--", color="k", lw=1.0, label=r"$\alpha_r$ (ref.)")
     ax.plot(t, s.alpha_cmd_deg, ":", color="tab:orange", lw=1.0, label=r"$\alpha_{cmd}$")
-    ax.plot(t, s.alpha_deg, color="tab:blue", lw=1.0, label=r"$\alpha$")
+    ax.plot(t, s.alpha_deg, color="tab:blue", lw=1.0, label=r"$\alpha$ (measured)")
     ax.set_ylabel("tilt [deg]")
     ax.set_xlabel("time [s]")
     spans = phase_spans(t, s.actuation)
+    shading = [Patch(color=_SHADE[UDT][0], alpha=0.3,
+                     label=f"under-actuated ($\\alpha$ < {UDT_MAX_DEG:g} deg)"),
+               Patch(color=_SHADE[FULL][0], alpha=0.3, label="fully actuated")]
     for ax in axes:
         for a, b, state in spans:
             color, alpha = _SHADE[state]
             ax.axvspan(a, b, color=color, alpha=alpha, lw=0)
         ax.grid(True, lw=0.3)
-        ax.legend(loc="upper right", fontsize=7, ncol=6, framealpha=0.7)
+        handles, labels = ax.get_legend_handles_labels()
+        if ax is axes[0]:  # the background's meaning, once, at the top
+            handles, labels = handles + shading, labels + [str(p.get_label()) for p in shading]
+        # outside the plotting area, to the right: a legend never covers a trace
+        ax.legend(handles, labels, loc="upper left", bbox_to_anchor=(1.005, 1.0), fontsize=7,
+                  frameon=False, borderaxespad=0.0)
     if len(t):
         axes[-1].set_xlim(float(t[0]), float(t[-1]))
-    if title:
-        fig.suptitle(title + "  (red: under-actuated, green: fully actuated)", fontsize=10)
-    out = Path(path)
-    fig.savefig(out, dpi=dpi)
-    plt.close(fig)
-    return out
+    head = (title + "\n") if title else ""
+    fig.suptitle(head + "background: red while under-actuated, green while fully actuated; "
+                 "error panels scaled to the measured part of the mission", fontsize=10)
+    return fig
 
 
 @dataclass(frozen=True)
@@ -256,7 +335,11 @@ def write_report(record_path: str | Path, out_dir: str | Path) -> ReportFiles:
                            min_spin_hz=params.rotors.min_spin_hz,
                            max_spin_hz=params.rotors.max_spin_hz)
     js = out / METRICS_JSON
-    js.write_text(json.dumps(metrics_json(metrics), indent=1) + "\n", encoding="utf-8")
+    shown = metrics_json(metrics)
+    js.write_text(json.dumps(shown, indent=1) + "\n", encoding="utf-8")
     md = out / METRICS_MD
-    md.write_text(metrics_markdown(metrics, title or Path(record_path).name), encoding="utf-8")
+    # the table shows the numbers of the JSON file, rounded alike
+    md.write_text(metrics_markdown({k: float(v) if isinstance(v, (int, float)) else math.nan
+                                    for k, v in shown.items()}, title or Path(record_path).name),
+                  encoding="utf-8")
     return ReportFiles(figure, js, md, metrics)

@@ -26,6 +26,7 @@ import queue
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -46,7 +47,6 @@ from drivers.mocap.uri import open_pose_source
 from estimator.ukf import Ukf
 from groundstation.flight import SafetyLimits
 from groundstation.gcs import GcsOptions, gcs_options, start_gcs
-from groundstation.gcs import summary_lines as mavlink_summary_lines
 from groundstation.loop import FlightLoop, LoopOptions, LoopResult
 from groundstation.record import RECORD_DTYPE, RecordWriter
 from groundstation.session_config import EmulatedBackend, HardwareBackend, SessionConfig
@@ -75,6 +75,10 @@ class SessionOutcome:
     preflight: list[tuple[str, bool, str]]
     realtime_settings: dict[str, str] = field(default_factory=dict)
     wall_time_s: float = 0.0
+    #: the dashboard as flown: spawn, serve, save or off
+    dashboard_mode: str = "off"
+    #: the dashboard's .rrd file, if one was written
+    dashboard_file: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -164,12 +168,14 @@ class EmulatorProcess:
 
 
 def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
-                    events: Any, events_path: str, echo_events: bool, stop: Any,
+                    events: Any, events_path: str, notices: Any, stop: Any,
                     dashboard_mode: str, rrd_path: str, params: VehicleParams,
                     mavlink: GcsOptions | None = None, status: Any = None,
                     commands: Any = None) -> None:
     """The telemetry process: ring -> flight record (+ rerun dashboard), event queue -> events
-    file (and stderr). Runs at a lower priority; the loop never waits for it."""
+    file. Runs at a lower priority; the loop never waits for it. It never writes to the
+    terminal itself: lines for the operator (the viewer's address, the MAVLink link's notices)
+    go back to the session through ``notices`` (None: not shown), whose console prints them."""
     with contextlib.suppress(OSError):
         os.nice(10)
     ignore_stop_signals()  # the session ends us (stop event or its death), not the terminal
@@ -181,10 +187,16 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
         from groundstation.dashboard import Dashboard
 
         dash = Dashboard(dashboard_mode, rrd_path, metadata=metadata, params=params)
-        if dash.viewer_url:
-            print(f"dashboard: {dash.viewer_url}", file=sys.stderr, flush=True)
+        if dash.viewer_url and notices is not None:
+            notices.put(f"dashboard: web viewer at {dash.viewer_url}")
+
+    def notice(line: str) -> None:
+        if notices is not None:
+            with contextlib.suppress(queue.Full):
+                notices.put_nowait(line)
+
     gcs = None if mavlink is None else start_gcs(mavlink, params, status, commands,
-                                                 events_path, echo_events)
+                                                 events_path, notice)
     with open(events_path, "a", encoding="utf-8") as ev:
         parent = os.getppid()
         while True:
@@ -205,11 +217,6 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
                     dash.log_event_line(text)
                 if gcs is not None:
                     pending_events.append(text)
-                if echo_events:
-                    try:
-                        print(text, file=sys.stderr, flush=True)
-                    except OSError:  # the terminal is gone (SIGHUP): the events file has it
-                        echo_events = False
             ev.flush()
             if gcs is not None and len(rows):
                 gcs.publish(rows[-1], pending_events)
@@ -235,7 +242,8 @@ class FlightSession:
 
     def __init__(self, cfg: SessionConfig, params: VehicleParams, mission: Mission, *,
                  record_path: Path, session_dir: Path | None = None,
-                 echo_events: bool = True, corrupt_prob: float = 0.0,
+                 echo_events: bool = True, on_event: Callable[[str], None] | None = None,
+                 corrupt_prob: float = 0.0,
                  realtime_settings: bool | None = None,
                  scripted_requests: tuple[tuple[float, str], ...] = (),
                  props_off: bool = False,
@@ -247,6 +255,9 @@ class FlightSession:
         self.record_path = record_path
         self.events_path = record_path.with_suffix(record_path.suffix + ".events.txt")
         self.echo_events = echo_events
+        #: called (in this process, from the loop's thread: it must not block) with every
+        #: event line as it happens; None with echo_events: plain lines on stderr
+        self.on_event = on_event
         self.corrupt_prob = corrupt_prob
         #: None: on wherever the clock is real (hardware, realtime emulation), off in lockstep
         self.realtime_settings = realtime_settings
@@ -270,11 +281,14 @@ class FlightSession:
         self.props_off = props_off
 
     def _dashboard_mode(self) -> str:
+        """``auto``: a spawned viewer where there is a display, else none. Without a viewer
+        a 25 MB .rrd next to every record is rarely wanted; ``save`` writes one, and ``fasthex
+        replay RECORD`` makes one from the record at any time."""
         if self.dashboard != "auto":
             return self.dashboard
         from groundstation.dashboard import default_mode
 
-        return default_mode()
+        return "spawn" if default_mode() == "spawn" else "off"
 
     def run(self) -> SessionOutcome:
         cfg = self.cfg
@@ -298,6 +312,24 @@ class FlightSession:
         status: Any = ctx.Array("d", 3, lock=False)
         commands: Any = ctx.Queue(maxsize=100)
         wall0 = time.perf_counter()
+        on_event = self.on_event
+        own_console = None
+        if on_event is None and self.echo_events:
+            from groundstation.console import Console
+
+            own_console = Console(sys.stderr, live=False).start()
+            on_event = own_console.event
+        # lines from the telemetry process for the operator (viewer address, MAVLink notices)
+        notices: Any = ctx.Queue(maxsize=100) if on_event is not None else None
+        forwarder = _NoticeForwarder(notices, on_event) if on_event is not None else None
+
+        def note(text: str) -> None:  # an event: to the events file and the operator
+            with contextlib.suppress(queue.Full):
+                events.put_nowait(text)
+            if on_event is not None:
+                on_event(text)
+
+        dashboard_mode = self._dashboard_mode()
         settings: dict[str, str] = {}
         truth_path: Path | None = None
         rt_settings = (not lockstep if self.realtime_settings is None
@@ -316,8 +348,8 @@ class FlightSession:
                                                 self.session_dir, self.corrupt_prob, truth_path,
                                                 realtime_settings=rt_settings)
                 if self.emulator.realtime_settings:
-                    events.put_nowait("emulated vehicle real-time settings: "
-                                      + self.emulator.realtime_settings)
+                    note("emulated vehicle real-time settings: "
+                         + self.emulator.realtime_settings)
             self._check_interrupted("starting the emulated vehicle")
             uris = device_uris(cfg, self.emulator)
             fc_uri, servo_uri, mocap_uri = uris.flight_ctrl, uris.servo, uris.mocap
@@ -366,8 +398,9 @@ class FlightSession:
             ident = _open_device("flight-ctrl", fc_uri, fc.connect)
             if lockstep:  # every sample answers our own `w`: read it in the loop's thread
                 fc.read_in_caller_thread()
-            events.put_nowait(f"flight-ctrl: {ident.protocol} firmware {ident.firmware_id} "
-                              f"on {fc_uri}")
+            # the emulator's ptys live in a temporary folder that is gone after the flight
+            where = "the emulated vehicle" if self.emulator is not None else fc_uri
+            note(f"flight-ctrl: {ident.protocol} firmware {ident.firmware_id} on {where}")
             self._check_interrupted("opening the Flight-Ctrl")
 
             with stop_signals_blocked():  # the shared-memory tracker process starts here
@@ -383,17 +416,16 @@ class FlightSession:
             self.events_path.write_text("")
             tel = ctx.Process(target=_telemetry_main, name="fasthex-telemetry",
                               args=(ring.name, str(self.record_path), meta, events,
-                                    str(self.events_path), self.echo_events, stop,
-                                    self._dashboard_mode(),
+                                    str(self.events_path), notices, stop,
+                                    dashboard_mode,
                                     str(self.record_path.with_suffix(".rrd")), self.params,
                                     self.mavlink, status, commands))
             with stop_signals_blocked():  # it ignores them once its interpreter is up
                 tel.start()
+            if forwarder is not None:
+                forwarder.start()
             row_sink = ring.push
-
-            def event_sink(text: str) -> None:
-                with contextlib.suppress(queue.Full):
-                    events.put_nowait(text)
+            event_sink = note
 
             loop = FlightLoop(
                 params=self.params, mission=self.mission, imu=fc, tilt=servo, pose=mocap,
@@ -424,10 +456,14 @@ class FlightSession:
             status[0] = float(int(loop.sm.state))  # the final state, for the MAVLink GCS
             if self.stop_signals is not None and self.stop_signals.count:
                 result.end_reason += f" (on {self.stop_signals.describe()})"
-            event_sink(f"session ended: {result.end_reason}")
+            # to the events file only: the summary that follows says it to the operator
+            with contextlib.suppress(queue.Full):
+                events.put_nowait(f"session ended: {result.end_reason}")
+            rrd = self.record_path.with_suffix(".rrd")
             return SessionOutcome(result, self.record_path, self.events_path,
                                   loop.preflight_report, settings,
-                                  time.perf_counter() - wall0)
+                                  time.perf_counter() - wall0, dashboard_mode,
+                                  rrd if dashboard_mode != "off" and rrd.exists() else None)
         finally:
             if fc is not None:
                 with contextlib.suppress(Exception):
@@ -446,6 +482,10 @@ class FlightSession:
                     tel.kill()
             if ring is not None:
                 ring.close()
+            if forwarder is not None:
+                forwarder.stop()  # the telemetry process has ended: its last notices too
+            if own_console is not None:
+                own_console.stop()
             if self.emulator is not None:
                 self.emulator.close()
                 self._note_emulator_stats()
@@ -471,6 +511,39 @@ class FlightSession:
         """A stop signal during start-up ends the session there: nothing is armed yet."""
         if self.requests:
             raise SessionInterruptedError(f"stopped while {stage}: nothing was armed")
+
+
+class _NoticeForwarder:
+    """Lines from the telemetry process (a multiprocessing queue) -> the session's event
+    callback, from a thread of this process."""
+
+    def __init__(self, notices: Any, on_event: Callable[[str], None]) -> None:
+        self._notices = notices
+        self._on_event = on_event
+        self._stop = False
+        self._thread = threading.Thread(target=self._run, name="fasthex-notices", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop:
+            try:
+                self._on_event(self._notices.get(timeout=0.2))
+            except queue.Empty:
+                continue
+            except (OSError, ValueError, EOFError):  # the queue was closed
+                return
+
+    def stop(self) -> None:
+        self._stop = True
+        if self._thread.is_alive():
+            self._thread.join(timeout=1.0)
+        while True:
+            try:
+                self._on_event(self._notices.get_nowait())
+            except (queue.Empty, OSError, ValueError, EOFError):
+                return
 
 
 def _open_device(what: str, uri: str, open_it: Callable[[], T]) -> T:
@@ -534,23 +607,3 @@ def _estimator_config(cfg: SessionConfig, params: VehicleParams) -> Any:
     from dataclasses import replace
 
     return replace(cfg.estimator, mass_kg=params.mass_kg, gravity_m_s2=params.gravity_m_s2)
-
-
-def summary_lines(outcome: SessionOutcome) -> list[str]:
-    r = outcome.result
-    t = r.timing
-    lines = [f"session ended: {r.end_reason} after {r.ticks} ticks "
-             f"({r.flight_time_s:.1f} s of flight, {outcome.wall_time_s:.1f} s wall)",
-             f"loop: compute p50 {t.compute_p50_ms:.3f} ms, p99 {t.compute_p99_ms:.3f} ms, "
-             f"max {t.compute_max_ms:.2f} ms; deadline misses {t.deadline_misses} "
-             f"({100 * t.miss_fraction:.3f} %); period p50 {t.period_p50_ms:.3f} ms, "
-             f"jitter p99 {t.jitter_p99_ms:.3f} ms; IMU in -> w out p50 "
-             f"{t.latency_p50_ms:.3f} ms, p99 {t.latency_p99_ms:.3f} ms",
-             f"faults: {len(r.faults)}; poses rejected {r.estimator_poses_rejected}; "
-             f"UKF fusion horizon {1e3 * r.estimator_fusion_delay_s:.1f} ms behind the IMU; "
-             f"telemetry rows dropped {r.telemetry_dropped}"]
-    lines += [f"  fault {f}" for f in r.faults]
-    lines += mavlink_summary_lines(outcome.record_path)
-    lines.append(f"flight record: {outcome.record_path}")
-    lines.append(f"events: {outcome.events_path}")
-    return lines

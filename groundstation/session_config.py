@@ -140,9 +140,12 @@ class SafetyConfig:
 
 @dataclass(frozen=True, kw_only=True)
 class TelemetryConfig:
-    record: str = spec("", doc="flight-record path; empty: flights/<session>-<time>.fhr")
+    record: str = spec("", doc="flight-record path, relative to the session file; {session} "
+                       "and {time} are replaced; empty: flights/<session>-<time>.fhr under "
+                       "the working directory; fly --record overrides it")
     rerun: Literal["off", "save", "serve", "spawn", "auto"] = spec(
-        "auto", doc="auto: spawn a viewer when a display exists, else save a .rrd")
+        "auto", doc="auto: spawn a viewer when a display exists, else none (save writes "
+        "RECORD.rrd; fasthex replay makes one later)")
     mavlink: str = spec("", doc="MAVLink endpoint URI, e.g. udpout:127.0.0.1:14550; empty: off")
     # MAVLink signing: a key FILE (never the key itself); see groundstation.gcs for precedence
     mavlink_key_file: str | None = spec(None, doc="file holding the MAVLink signing key (64 hex "

@@ -2,15 +2,18 @@
 
 Preflight checks, arm, take off, fly the mission, land, disarm; failsafes on the way. Ctrl-C
 lands, a second Ctrl-C cuts the motors. The flight record is written as the flight goes.
+
+On a terminal, events (preflight results, state changes, faults) scroll as they happen above a
+live status line (:mod:`groundstation.console`); the end-of-flight summary follows
+(:mod:`groundstation.summary`). The record goes to ``--record``, else the session's
+``telemetry.record``, else ``flights/<session>-<time>.fhr`` under the working directory.
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -20,14 +23,35 @@ HELP = "fly a session (default: the paper's Experiment 1 on the emulated vehicle
 DEFAULT_SESSION = "exp1-emulated"
 
 
+def _shipped_sessions() -> str:
+    from config import available, config_root, find_config
+
+    names = []
+    for name in available("sessions"):
+        try:  # the description line of the file, if it has one
+            import yaml
+
+            text = find_config("sessions", name).read_text(encoding="utf-8")
+            desc = str(yaml.safe_load(text).get("description", ""))
+        except Exception:
+            desc = ""
+        names.append(f"  {name:22s} {desc}".rstrip())
+    return ("shipped sessions (in " + str(config_root() / "sessions") + "):\n"
+            + "\n".join(names))
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = _shipped_sessions()
     parser.add_argument("session", nargs="?", default=DEFAULT_SESSION,
-                        help=f"session name or YAML file (default {DEFAULT_SESSION})")
+                        help=f"shipped session name (listed below) or a session YAML file "
+                        f"(default {DEFAULT_SESSION})")
     parser.add_argument("--clock", choices=("realtime", "lockstep"), default=None,
                         help="emulated backend: override the session's clock")
     parser.add_argument("--seed", type=int, default=None, help="emulated backend: seed")
     parser.add_argument("--record", default=None, metavar="PATH",
-                        help="flight-record path (default flights/<session>-<time>.fhr)")
+                        help="flight-record path; overrides the session's telemetry.record "
+                        "(default flights/<session>-<time>.fhr)")
     parser.add_argument("--json", action="store_true",
                         help="print the exit summary as one JSON object")
     parser.add_argument("--quiet", action="store_true", help="no live status or event lines")
@@ -38,7 +62,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rerun", choices=("spawn", "serve", "save", "off", "auto"),
                         default=None, help="live dashboard: spawn the viewer, serve the web "
                         "viewer, save RECORD.rrd, or off (default: the session's; auto = spawn "
-                        "with a display, else save)")
+                        "with a display, else none: `fasthex replay RECORD` shows or saves it "
+                        "later)")
     parser.add_argument("--mavlink", default=None, metavar="URI",
                         help="MAVLink endpoint for a GCS, e.g. udpout:127.0.0.1:14550 "
                         "(default: the session's; '' to switch off)")
@@ -61,14 +86,12 @@ def run(args: argparse.Namespace) -> int:
     from controller.missions import Mission
     from groundstation.cli import UserError
     from groundstation.configs import load_mission, load_vehicle
-    from groundstation.session import (
-        FlightSession,
-        SessionError,
-        SessionInterruptedError,
-        summary_lines,
-    )
+    from groundstation.console import Console
+    from groundstation.gcs import summary_lines as mavlink_summary_lines
+    from groundstation.session import FlightSession, SessionError, SessionInterruptedError
     from groundstation.session_config import EmulatedBackend, load_session, resolve_reference
     from groundstation.signals import StopSignals
+    from groundstation.summary import json_ready, summary_text
 
     path = find_config("sessions", args.session)
     cfg = load_session(path)
@@ -83,52 +106,52 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--clock and --seed apply to emulated sessions only")
     params = load_vehicle(resolve_reference(path, cfg.vehicle))
     mission = Mission(load_mission(resolve_reference(path, cfg.mission)))
-    record = Path(args.record) if args.record else Path(
-        "flights") / f"{cfg.name}-{time.strftime('%Y%m%d-%H%M%S')}.fhr"
-    record.parent.mkdir(parents=True, exist_ok=True)
+    record = record_path(args.record, cfg.telemetry.record, path, cfg.name)
+    try:
+        record.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot create the record's folder {record.parent}: "
+                        f"{exc.strerror}") from None
+    show = not args.quiet and not args.json
+    console = Console(sys.stderr, status=lambda: session.loop.status if session.loop else "")
     session = FlightSession(cfg, params, mission, record_path=record,
-                            echo_events=not args.quiet and not args.json,
+                            echo_events=show, on_event=console.event if show else None,
                             corrupt_prob=args.corrupt_prob,
                             realtime_settings=args.realtime_settings,
                             dashboard=args.rerun, mavlink=args.mavlink,
                             mavlink_key_file=args.mavlink_key_file, props_off=args.props_off)
-    stop_status = threading.Event()
     # SIGINT (Ctrl-C), SIGTERM and SIGHUP: the first lands, a second cuts (groundstation.signals)
     signals = StopSignals(session.requests).install()
     session.stop_signals = signals
-    status: threading.Thread | None = None
-    if not args.quiet and not args.json and sys.stderr.isatty():
-        def show() -> None:
-            while not stop_status.wait(0.2):
-                if signals.hangup:  # the terminal is gone
-                    return
-                if session.loop is not None and session.loop.status:
-                    with contextlib.suppress(OSError):
-                        print("\r" + session.loop.status, end="", file=sys.stderr, flush=True)
-        status = threading.Thread(target=show, daemon=True)
-        status.start()
+    if show:
+        console.start()
     try:
         try:
             outcome = session.run()
         except SessionInterruptedError as exc:
+            console.stop()  # its last lines first; this one after, on a line of its own
             print(f"fasthex: {signals.describe()}: {exc}", file=sys.stderr)
             return 1
         except SessionError as exc:
             raise UserError(str(exc)) from None
         finally:
-            stop_status.set()
-            if status is not None:
-                status.join(timeout=1.0)
-                with contextlib.suppress(OSError):
-                    print(file=sys.stderr)
+            if signals.hangup:  # the terminal is gone: print nothing more to it
+                console.broken = True
+            console.stop()
         summary = flight_summary(outcome, params, cfg.name)
         try:
             if args.json:
-                json.dump(summary, sys.stdout, indent=2)
+                json.dump(json_ready(summary), sys.stdout, indent=2)
                 sys.stdout.write("\n")
             else:
-                print("\n".join(summary_lines(outcome)))
-                metrics_table(summary)
+                requested = args.rerun or cfg.telemetry.rerun
+                mode = ("auto-headless" if requested == "auto" and outcome.dashboard_mode == "off"
+                        else outcome.dashboard_mode)
+                sys.stdout.write(summary_text(
+                    summary, clock=getattr(cfg.backend, "clock", "realtime"),
+                    rate_hz=cfg.backend.imu_rate_hz, dashboard_mode=mode,
+                    dashboard_file=str(outcome.dashboard_file) if outcome.dashboard_file
+                    else None, extra=mavlink_summary_lines(outcome.record_path)))
             sys.stdout.flush()
         except OSError:  # stdout was the terminal that hung up: the record and events stand
             pass
@@ -137,6 +160,21 @@ def run(args: argparse.Namespace) -> int:
         return 0 if planned else 1
     finally:
         signals.restore()
+
+
+def record_path(cli: str | None, configured: str, session_file: Path, session: str) -> Path:
+    """Where the flight record goes: ``--record``, else the session's ``telemetry.record``
+    (relative to the session file, like its other paths), else
+    ``flights/<session>-<time>.fhr`` under the working directory. ``{session}`` and ``{time}``
+    in the configured path are replaced, so one session file can keep every flight."""
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    if cli:
+        return Path(cli)
+    if configured:
+        path = Path(configured.replace("{session}", session).replace("{time}", stamp))
+        path = path.expanduser()
+        return path if path.is_absolute() else session_file.parent / path
+    return Path("flights") / f"{session}-{stamp}.fhr"
 
 
 def flight_summary(outcome: Any, params: Any, session: str) -> dict[str, Any]:
@@ -178,13 +216,3 @@ def flight_summary(outcome: Any, params: Any, session: str) -> dict[str, Any]:
         out.update(flight_metrics(rec.rows, min_spin_hz=params.rotors.min_spin_hz,
                                   max_spin_hz=params.rotors.max_spin_hz))
     return out
-
-
-def metrics_table(summary: dict[str, Any]) -> None:
-    keys = [k for k in summary if k.startswith(("all_", "udt_", "mdt_"))]
-    if not keys:
-        return
-    print(f"metrics (scored on the {summary['state_source']}):")
-    for k in keys:
-        v = summary[k]
-        print(f"  {k:34s} {v:10.3f}" if isinstance(v, float) else f"  {k:34s} {v}")

@@ -2,7 +2,9 @@
 
 Works on records of ``fasthex fly`` (with their ``RECORD.events.txt``) and of
 ``fasthex simulate --log``. ``--speed realtime`` paces the blocks by the record's clock,
-``--speed max`` sends them as fast as rerun takes them. ``--rerun`` chooses the output as in a
+``--speed max`` sends them as fast as rerun takes them. By default a live viewer (``spawn``,
+``serve``) is paced, so the flight plays as it was flown, and a file (``save``, ``off``) is
+written at full speed with a progress bar on the terminal. ``--rerun`` chooses the output as in a
 flight: ``spawn`` the native viewer, ``serve`` the web viewer on localhost (the URL is printed;
 the server stays up until Ctrl-C), ``save`` an ``.rrd`` (``--out``, default ``RECORD.rrd``),
 or ``off``. Default: ``spawn`` with a display, ``save`` without.
@@ -11,10 +13,12 @@ or ``off``. Default: ``spawn`` with a display, ``save`` without.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import threading
 import time
 from pathlib import Path
+from typing import TextIO
 
 NAME = "replay"
 HELP = "stream a flight record into the rerun dashboard (viewer, web viewer or .rrd)"
@@ -24,8 +28,9 @@ BLOCK_S = 0.1  # the telemetry process's drain period
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("record", help="flight record file (from fly or simulate --log)")
-    parser.add_argument("--speed", choices=("realtime", "max"), default="realtime",
-                        help="pace by the record's clock (default) or as fast as possible")
+    parser.add_argument("--speed", choices=("realtime", "max"), default=None,
+                        help="pace by the record's clock or as fast as possible (default: "
+                        "realtime for spawn and serve, max for save and off)")
     parser.add_argument("--rerun", choices=("spawn", "serve", "save", "off"), default=None,
                         help="dashboard output (default: spawn with a display, else save)")
     parser.add_argument("--out", default=None, metavar="FILE.rrd",
@@ -49,6 +54,8 @@ def run(args: argparse.Namespace) -> int:
     except RecordFormatError as exc:
         raise UserError(str(exc)) from None
     mode = args.rerun or default_mode()
+    # pacing only means something to someone watching a viewer
+    speed = args.speed or ("realtime" if mode in ("spawn", "serve") else "max")
     out = Path(args.out) if args.out else (path.with_suffix(".rrd") if mode == "save" else None)
     events_file = path.with_name(path.name + ".events.txt")
     events = parse_events(events_file.read_text(encoding="utf-8", errors="replace")) \
@@ -67,11 +74,12 @@ def run(args: argparse.Namespace) -> int:
     start = 0
     wall0 = time.monotonic()
     t0 = float(t[0]) if n else 0.0
+    progress = Progress(sys.stderr, n, float(t[-1]) - t0 if n else 0.0)
     while start < n:
         stop = int(min(n, max(start + 1, int(start + 500 * BLOCK_S))))
         # blocks end on the record's clock, so gaps (dropped telemetry) stay gaps
         t_end = float(t[stop - 1])
-        if args.speed == "realtime":
+        if speed == "realtime":
             delay = (t_end - t0) - (time.monotonic() - wall0)
             if delay > 0:
                 time.sleep(delay)
@@ -80,9 +88,11 @@ def run(args: argparse.Namespace) -> int:
             dash.log_event(*events[ev_i])
             ev_i += 1
         start = stop
+        progress.update(stop, t_end - t0)
     for ev in events[ev_i:]:
         dash.log_event(*ev)
     dash.close()
+    progress.done()
     what = {"spawn": "native viewer", "serve": "web viewer", "save": str(out),
             "off": "nowhere (off)"}[mode]
     print(f"replayed {n} rows ({(float(t[-1]) - t0) if n else 0.0:.1f} s) and "
@@ -95,3 +105,38 @@ def run(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             return 0
     return 0
+
+
+class Progress:
+    """A one-line progress bar on a terminal (nothing otherwise), redrawn at most 10 times a
+    second: rows done of the record, and the record time they reach."""
+
+    WIDTH = 30
+
+    def __init__(self, stream: TextIO, rows: int, duration_s: float) -> None:
+        self._stream = stream
+        self._rows = max(rows, 1)
+        self._duration_s = duration_s
+        self._shown_at = 0.0
+        try:
+            self._live = stream.isatty()
+        except (AttributeError, ValueError, OSError):
+            self._live = False
+
+    def update(self, done: int, t_s: float, *, force: bool = False) -> None:
+        now = time.monotonic()
+        if not self._live or (now - self._shown_at < 0.1 and not force):
+            return
+        self._shown_at = now
+        frac = min(max(done / self._rows, 0.0), 1.0)
+        bar = "#" * round(frac * self.WIDTH)
+        with contextlib.suppress(OSError, ValueError):
+            self._stream.write(f"\r\x1b[2Kreplay [{bar:<{self.WIDTH}}] {100 * frac:3.0f} %  "
+                               f"{t_s:6.1f} of {self._duration_s:.1f} s")
+            self._stream.flush()
+
+    def done(self) -> None:
+        if self._live:  # the bar gives way to the result line
+            with contextlib.suppress(OSError, ValueError):
+                self._stream.write("\r\x1b[2K")
+                self._stream.flush()

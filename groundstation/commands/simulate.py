@@ -179,8 +179,10 @@ def format_table(summary: dict[str, Any]) -> str:
 def run(args: argparse.Namespace) -> int:
     summary = simulate(args)
     if args.json:
-        json.dump({k: (None if isinstance(v, float) and math.isnan(v) else v)
-                   for k, v in summary.items()}, sys.stdout)
+        from groundstation.metrics import rounded
+
+        # rounded to each unit's resolution, as fly --json and report's metrics.json
+        json.dump({k: rounded(k, v) for k, v in summary.items()}, sys.stdout)
         sys.stdout.write("\n")
     else:
         print(format_table(summary))
