@@ -62,6 +62,8 @@ LINK_CHECK_TICKS = 50
 #: below this fraction of the set IMU rate the link is degraded: motors cut (the driver's own
 #: ``min_rate_fraction`` on the wall clock; in lockstep the loop counts sequence-number gaps)
 IMU_MIN_RATE_FRACTION = 0.8
+#: preflight: a measured IMU rate above this fraction of the set rate fails too (real time)
+IMU_MAX_RATE_FRACTION = 1.25
 #: lockstep: the IMU rate is the samples received over the last this many sample periods of
 #: the board's clock (0.5 s at 500 Hz, the driver's ``rate_window_s``), judged every
 #: LINK_CHECK_TICKS ticks: a degraded link is cut within one window and one check of its onset,
@@ -584,14 +586,18 @@ class FlightLoop:
                          "(lockstep: from sequence numbers)")
         else:
             imu_rate = stats.imu.measured_rate_hz
-            imu_ok = imu_rate >= IMU_MIN_RATE_FRACTION * self.opts.imu_rate_hz
+            # above the set rate is no better than below it: a backlog read in one burst, or a
+            # board streaming faster than the session plans for (the check repeats: a burst
+            # slides out of the rate window)
+            imu_ok = (IMU_MIN_RATE_FRACTION * self.opts.imu_rate_hz <= imu_rate
+                      <= IMU_MAX_RATE_FRACTION * self.opts.imu_rate_hz)
             imu_value = f"{imu_rate:.0f} Hz of {self.opts.imu_rate_hz:.0f} Hz"
             clk = stats.imu_clock  # the board's sample clock against ours (clock sync)
             if clk.known:
                 imu_value += (f"; board clock {clk.rate_hz:.1f} Hz, offset {clk.offset_s:+.3f} s,"
                               f" drift {clk.drift_ppm:+.0f} {_ppm_error(clk.drift_sigma_ppm)}")
         checks = [
-            ("flight-ctrl streaming IMU >= 80 % of the set rate", imu_ok, imu_value),
+            ("flight-ctrl streaming IMU at 80-125 % of the set rate", imu_ok, imu_value),
             ("servo answers, multi-turn, at the commanded angle",
              servo is not None and servo.ok and abs(servo.tilt_rad - servo.goal_tilt_rad)
              < math.radians(1.0) if servo is not None and math.isfinite(servo.goal_tilt_rad)

@@ -18,9 +18,10 @@ import pytest
 
 from controller.reference import VehicleState
 from drivers.dynamixel.device import ServoHealth
+from estimator.types import HealthFlag
 from groundstation.loop import FlightLoop, LoopOptions
 
-IMU = "flight-ctrl streaming IMU >= 80 % of the set rate"
+IMU = "flight-ctrl streaming IMU at 80-125 % of the set rate"
 SERVO = "servo answers, multi-turn, at the commanded angle"
 MOCAP = "MoCap sees the body at >= 80 % of its rate"
 ESTIMATOR = "estimator converged"
@@ -52,7 +53,8 @@ def _checks(*, lockstep: bool = True, rate_fraction: float = 1.0, wall_rate_hz: 
                              clock_drift_ppm=math.nan, clock_drift_sigma_ppm=math.nan)
     loop.pose = SimpleNamespace(stats=lambda: mstats)
     loop.mission = SimpleNamespace(start_pos_w_m=START_POS_W_M)
-    health = SimpleNamespace(ok=healthy, flags="OK" if healthy else "DIVERGED")
+    health = SimpleNamespace(ok=healthy,
+                             flags=HealthFlag.OK if healthy else HealthFlag.DIVERGED)
     loop.ukf = SimpleNamespace(initialized=initialized,
                                health=lambda: health)
     est = VehicleState((x_m, 0.0, 0.1), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
@@ -79,6 +81,14 @@ def test_that_realtime_judges_the_imu_on_the_measured_rate_and_passes_at_exactly
     assert _checks(lockstep=False, wall_rate_hz=400.0, rate_fraction=0.1)[IMU] == (
         True, "400 Hz of 500 Hz")
     assert _checks(lockstep=False, wall_rate_hz=399.9)[IMU][0] is False
+
+
+def test_that_realtime_fails_an_imu_rate_above_125_percent_of_the_set_rate() -> None:
+    # a backlog read in one burst (a stream start once read 1613 Hz of 500 Hz) or a board set
+    # faster than the session: not a healthy link either
+    assert _checks(lockstep=False, wall_rate_hz=625.0)[IMU] == (True, "625 Hz of 500 Hz")
+    assert _checks(lockstep=False, wall_rate_hz=625.1)[IMU][0] is False
+    assert _checks(lockstep=False, wall_rate_hz=1613.0)[IMU] == (False, "1613 Hz of 500 Hz")
 
 
 def test_that_the_board_clock_is_reported_once_the_clock_sync_knows_it() -> None:
