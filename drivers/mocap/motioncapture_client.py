@@ -30,38 +30,57 @@ body absent from the frames for ``stale_after_s`` reads ``MISSING``. A pose that
 non-finite, out of ``limits.max_range_m`` or has a far-from-unit quaternion is dropped and
 counted (``stats().implausible_samples``).
 
-Threading: ``connect`` and ``waitForNextFrame`` run on the receive thread, never on the
-caller's. ``start()`` waits up to ``connect_timeout_s`` for a frame holding the body: none
-raises :class:`~drivers.mocap.pose.MocapConnectError` (no frame at all) or
-:class:`~drivers.mocap.pose.UnknownBodyError` (listing the bodies seen). A C++ wait cannot be
-interrupted: ``close()`` stops the thread once its current wait returns (a silent server can
-keep it, a daemon, until the process ends).
+Process: the library runs in a child process (:mod:`drivers.mocap.motioncapture_child`,
+started with ``python -P -m`` and this package's root on its ``PYTHONPATH``, so also under the
+``fasthex`` console script), because ``motioncapture.connect`` holds the GIL for its whole
+connect and handshake: in this process a silent or wrong host froze every Python thread (5 s
+for qualisys, for ever for vicon against a refused port and optitrack against a silent host),
+the caller's timeout and Ctrl-C included. The child sends each frame's bodies (name,
+position, quaternion, the host receive time) over a pipe in the binary format its module
+describes; the receive thread here turns them into samples, stats and health. The receive
+time is the child's stamp (``time.monotonic_ns``, a system-wide clock, so the pipe adds no
+delay to it), or with an injected clock that clock when the report arrives.
 
-Known limitation, the GIL: ``motioncapture.connect`` (the library's connect and handshake) does
-not release the GIL, so while it runs every Python thread of the process stops, the caller of
-``start()`` and its timeout included. Against a server that answers this is short (qualisys:
-about 2 ms on loopback); against a wrong or silent host it lasts the library's own timeout, or
-for ever. Measured with ``motioncapture`` 1.1: ``qualisys`` froze the process for 5.0 s before
-failing (a silent port, an unreachable host), ``vrpn`` for 1.0 s (an unreachable host), and
-``vicon`` (a refused port) and ``optitrack`` (a silent host) had not returned after 40 s. So
-start the adapter before anything timed runs (it connects once, never again), and an emulated
-server for it must run in another process. ``waitForNextFrame`` does release the GIL (a ticker
-thread kept its rate while it streamed 200 Hz), so once connected the adapter starves nothing.
+``start()`` waits up to ``connect_timeout_s`` for a frame holding the body, with the GIL free.
+None raises :class:`~drivers.mocap.pose.MocapConnectError` (the library did not answer: its
+connect had not returned; or no frame at all) or :class:`~drivers.mocap.pose.UnknownBodyError`
+(listing the bodies seen), after ending the child; an error the library raises in the child
+(a refused connection, an unknown system) arrives as a ``MocapConnectError`` with its
+message. So a silent host costs ``connect_timeout_s`` and a clear error, never a frozen ground
+station. ``close()`` ends the child (SIGTERM, SIGKILL after :data:`TERMINATE_GRACE_S`) and
+reaps it, whatever the library is doing. The child ignores SIGINT and SIGHUP (Ctrl-C is this
+process's to handle) and never outlives this process: see its module. A ``connect`` factory
+passed to the constructor (tests' stand-ins for the library) runs on the receive thread of
+this process.
 """
 
 from __future__ import annotations
 
-import importlib
+import importlib.util
+import json
 import logging
 import math
+import os
+import subprocess
+import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from config.schema import ConfigValueError
 from drivers.mocap.frames import FrameConfig, FrameTransform, Quat, Vec3
+from drivers.mocap.motioncapture_child import (
+    STAGE_CONNECT,
+    STAGE_FRAMES,
+    STAGE_IMPORT,
+    ChildError,
+    Frame,
+    PipeFormatError,
+    read_message,
+)
 from drivers.mocap.pose import (
     FrameWaits,
     MocapConnectError,
@@ -75,8 +94,21 @@ from drivers.mocap.pose import (
 
 log = logging.getLogger(__name__)
 
+#: The module the library runs in (``python -P -m``).
+CHILD_MODULE = "drivers.mocap.motioncapture_child"
+#: How long ``close()`` gives the library's process after SIGTERM before SIGKILL.
+TERMINATE_GRACE_S = 0.5
+
 #: Systems libmotioncapture reads, with the up axis of their world frame by default.
 SYSTEM_UP_AXIS: dict[str, str] = {"vicon": "z", "qualisys": "z", "vrpn": "z", "optitrack": "y"}
+
+
+class LibraryProcessError(Exception):
+    """What the library's process reported (or that it ended); ``stage`` as the child's."""
+
+    def __init__(self, stage: int, message: str) -> None:
+        self.stage = stage
+        super().__init__(message)
 
 
 @dataclass(frozen=True)
@@ -118,8 +150,9 @@ class MotionCaptureConfig:
 class MotionCaptureClient(FrameWaits):
     """A :class:`~drivers.mocap.pose.PoseSource` reading one body through libmotioncapture.
 
-    ``connect`` builds the library's object from ``(system, library_options(system, host))``;
-    tests may pass another factory with the same interface."""
+    By default the library runs in a child process (see module). ``connect`` instead builds
+    the library's object from ``(system, library_options(system, host))`` on the receive
+    thread of this process: tests pass stand-ins with the library's interface."""
 
     def __init__(self, config: MotionCaptureConfig,
                  clock: Callable[[], int] = time.monotonic_ns,
@@ -132,9 +165,12 @@ class MotionCaptureClient(FrameWaits):
         self._cond = threading.Condition()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._proc_lock = threading.Lock()  # the child is started and ended under it
+        self._proc: subprocess.Popen[bytes] | None = None
         self._latest: PoseSample | None = None
         self._frames_seen = 0
         self._waits = 0  # frames the library returned, with or without the body
+        self._connected = False  # the library's connect returned
         self._seen_bodies: set[str] = set()
         self._error: BaseException | None = None
 
@@ -145,28 +181,61 @@ class MotionCaptureClient(FrameWaits):
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    @property
+    def child_pid(self) -> int | None:
+        """The library's process id until it has ended and been reaped (None in-process)."""
+        proc = self._proc
+        return None if proc is None or proc.returncode is not None else proc.pid
+
     def start(self) -> None:
-        """Connect on the receive thread; return once a frame holds the body (see module)."""
+        """Start the library, return once a frame holds the body (see module). Started
+        again, the client first ends its running library."""
         cfg = self.config
-        connect = self._connect or _library_connect(cfg.name)
+        if self._thread is not None:
+            self.close()  # one child per client: a second would outlive close()
+        if self._connect is None:
+            _require_library(cfg.name)
+            thread = threading.Thread(target=self._run_child, name="motioncapture-rx",
+                                      daemon=True)
+        else:
+            thread = threading.Thread(target=self._run_in_process, args=(self._connect,),
+                                      name="motioncapture-rx", daemon=True)
         self._stop.clear()
-        self._thread = threading.Thread(target=self._run, args=(connect,),
-                                        name="motioncapture-rx", daemon=True)
-        self._thread.start()
-        deadline = time.monotonic() + cfg.connect_timeout_s
         with self._cond:
-            while self._frames_seen == 0 and self._error is None:
-                left = deadline - time.monotonic()
-                if left <= 0.0:
-                    break
-                self._cond.wait(left)
-            error, waits, seen = self._error, self._waits, sorted(self._seen_bodies)
-            got = self._frames_seen > 0
-        if got:
+            self._error, self._connected = None, False
+            frames_before = self._frames_seen
+        self._thread = thread
+        thread.start()
+        deadline = time.monotonic() + cfg.connect_timeout_s
+        try:
+            with self._cond:
+                while (self._frames_seen == frames_before and self._error is None
+                       and not self._stop.is_set()):
+                    left = deadline - time.monotonic()
+                    if left <= 0.0:
+                        break
+                    self._cond.wait(left)
+                error, waits, seen = self._error, self._waits, sorted(self._seen_bodies)
+                got, connected = self._frames_seen > frames_before, self._connected
+        except BaseException:  # Ctrl-C while connecting: the caller gets no client to close
+            self.close()
+            raise
+        closed = self._stop.is_set()  # close() from another thread
+        if got and not closed:
             return
         self.close()
+        if closed:
+            raise MocapConnectError(cfg.name, "closed while connecting")
+        if isinstance(error, LibraryProcessError) and error.stage == STAGE_IMPORT:
+            raise MocapError(cfg.name, f"needs libmotioncapture: pip install "
+                             f"'fasthex[motioncapture]' ({error})") from error
         if error is not None:
             raise MocapConnectError(cfg.name, f"libmotioncapture: {error}") from error
+        if not connected:
+            raise MocapConnectError(cfg.name, f"libmotioncapture's {cfg.system} connect to "
+                                    f"{cfg.host} did not answer within "
+                                    f"{cfg.connect_timeout_s:g} s (wrong host, server not "
+                                    f"running, firewall?); its process was ended")
         if not seen:
             raise MocapConnectError(cfg.name, f"no rigid body within {cfg.connect_timeout_s:g}"
                                     f" s ({waits} frames; server not running, wrong host?)")
@@ -175,34 +244,113 @@ class MotionCaptureClient(FrameWaits):
                                f"{', '.join(seen)}")
 
     def close(self) -> None:
+        """End the library's process (reaped) and the receive thread."""
         self._stop.set()
+        with self._cond:
+            self._cond.notify_all()  # a start() waiting for the first frame gives up
+        with self._proc_lock:
+            proc = self._proc
+            if proc is not None:
+                _end_process(proc)
         thread, self._thread = self._thread, None
         if thread is not None and thread is not threading.current_thread():
             thread.join(timeout=2.0)
             if thread.is_alive():
                 log.warning("%s: the library is still waiting for a frame; its thread ends "
                             "with its wait", self.config.name)
+        if proc is not None and (thread is None or not thread.is_alive()):
+            for pipe in (proc.stdin, proc.stdout):
+                if pipe is not None:
+                    pipe.close()
 
-    def _run(self, connect: Callable[[str, dict[str, str]], Any]) -> None:
+    def _fail(self, error: BaseException) -> None:
+        if not self._stop.is_set():
+            log.warning("%s: libmotioncapture failed: %s", self.config.name, error)
+        with self._cond:
+            self._error = error
+            self._cond.notify_all()
+
+    def _on_connected(self) -> None:
+        with self._cond:
+            self._connected = True
+            self._cond.notify_all()
+
+    def _on_frame(self, names: Iterable[str]) -> None:
+        with self._cond:
+            self._waits += 1
+            self._seen_bodies.update(names)
+            self._cond.notify_all()
+
+    def _run_in_process(self, connect: Callable[[str, dict[str, str]], Any]) -> None:
         cfg = self.config
         try:
             mc = connect(cfg.system, library_options(cfg.system, cfg.host))
+            self._on_connected()
             while not self._stop.is_set():
                 mc.waitForNextFrame()
                 bodies = mc.rigidBodies
                 rx_t_ns = self._clock()
-                with self._cond:
-                    self._waits += 1
-                    self._seen_bodies.update(bodies)
-                    self._cond.notify_all()
+                self._on_frame(bodies)
                 rb = bodies.get(cfg.body)
                 if rb is not None:
                     self.on_body(rb.position, rb.rotation, rx_t_ns)
         except Exception as exc:  # the library raises RuntimeError; the thread must not die
-            log.warning("%s: libmotioncapture failed: %s", cfg.name, exc)
-            with self._cond:
-                self._error = exc
-                self._cond.notify_all()
+            self._fail(exc)
+
+    def _run_child(self) -> None:
+        cfg = self.config
+        try:
+            with self._proc_lock:
+                if self._stop.is_set():
+                    return
+                # Started from this thread, which lives until the child has ended: Linux's
+                # parent-death signal (see the child's module) fires when the *thread* that
+                # started a process ends, not only when the process does.
+                proc = subprocess.Popen(_child_command(cfg), stdin=subprocess.PIPE,
+                                        stdout=subprocess.PIPE, env=_child_env(),
+                                        start_new_session=True)  # no terminal signals
+                self._proc = proc
+        except OSError as exc:
+            self._fail(LibraryProcessError(STAGE_CONNECT,
+                                           f"cannot start the library's process: {exc}"))
+            return
+        assert proc.stdout is not None
+        try:
+            while (msg := read_message(proc.stdout)) is not None:
+                if isinstance(msg, Frame):
+                    self._on_child_frame(msg)
+                elif isinstance(msg, ChildError):
+                    self._fail(LibraryProcessError(msg.stage, msg.message))
+                else:
+                    self._on_connected()
+        except PipeFormatError as exc:
+            self._fail(LibraryProcessError(STAGE_FRAMES, f"unreadable report: {exc}"))
+            with self._proc_lock:
+                _end_process(proc)
+            return
+        # End of the pipe: the child has ended (or is ending)
+        try:
+            code = proc.wait(timeout=2.0)
+        except subprocess.TimeoutExpired:
+            code = None
+        if self._error is None and not self._stop.is_set():
+            self._fail(LibraryProcessError(STAGE_FRAMES, f"the library's process ended "
+                                           f"(exit code {code}) without a word"))
+
+    def _on_child_frame(self, frame: Frame) -> None:
+        # the child stamps with the system-wide monotonic clock: the default clock here, so
+        # the stamp is the arrival itself; another clock (a simulation's) reads its own now
+        rx_t_ns = (frame.rx_monotonic_ns if self._clock is time.monotonic_ns
+                   else self._clock())
+        self._on_frame(b.name for b in frame.bodies)
+        for body in frame.bodies:
+            if body.name != self.config.body:
+                continue
+            if not body.ok:
+                self.monitor.count_malformed()
+                continue
+            w, x, y, z = body.q_wxyz
+            self._on_pose(body.position_m, (x, y, z, w), rx_t_ns)
 
     def on_body(self, position_m: Any, rotation: Any, rx_t_ns: int) -> None:
         """Handle the body's pose in one frame: ``position_m`` 3 floats in the system's axes,
@@ -214,6 +362,9 @@ class MotionCaptureClient(FrameWaits):
         except (TypeError, ValueError, IndexError, AttributeError):
             self.monitor.count_malformed()
             return
+        self._on_pose(pos, q_xyzw, rx_t_ns)
+
+    def _on_pose(self, pos: Vec3, q_xyzw: Quat, rx_t_ns: int) -> None:
         cfg = self.config
         t_ns = rx_t_ns - round(cfg.latency_s * 1e9)
         pose = cfg.limits.world_pose(self._transform, pos, q_xyzw)
@@ -257,14 +408,36 @@ def library_options(system: str, host: str) -> dict[str, str]:
     return {"hostname": name, "port": str(int(port) - 1)}
 
 
-def _library_connect(device: str) -> Callable[[str, dict[str, str]], Any]:
+def _require_library(device: str) -> None:
+    # looked up here, imported only in the child: a missing library is an error at once
+    if importlib.util.find_spec("motioncapture") is None:
+        raise MocapError(device, "needs libmotioncapture: pip install 'fasthex[motioncapture]'")
+
+
+def _child_command(cfg: MotionCaptureConfig) -> list[str]:
+    options = json.dumps(library_options(cfg.system, cfg.host))
+    return [sys.executable, "-P", "-m", CHILD_MODULE, cfg.system, options, str(os.getpid())]
+
+
+def _child_env() -> dict[str, str]:
+    # -P keeps the working directory off the child's path; this package's root goes first
+    root = str(Path(__file__).resolve().parents[2])
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
+    return env
+
+
+def _end_process(proc: subprocess.Popen[bytes]) -> None:
+    """SIGTERM (its default action: the library may hold the GIL), SIGKILL after a grace;
+    reaped either way."""
+    if proc.poll() is not None:
+        return
+    proc.terminate()
     try:
-        module = importlib.import_module("motioncapture")
-    except ImportError as exc:
-        raise MocapError(device, "needs libmotioncapture: pip install 'fasthex[motioncapture]'"
-                         ) from exc
-    connect: Callable[[str, dict[str, str]], Any] = module.connect
-    return connect
+        proc.wait(timeout=TERMINATE_GRACE_S)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
 
 
 __all__ = ["SYSTEM_UP_AXIS", "MotionCaptureClient", "MotionCaptureConfig", "library_options"]

@@ -26,8 +26,9 @@ Forms (options are query parameters; defaults in brackets):
     (``HOST:PORT`` names QTM's little-endian RT port [22223] as ``qtm://`` does; the library
     takes the base port below it, so the adapter passes ``PORT - 1``; frames come over UDP to
     the fixed local port 6734), ``vrpn`` (``host`` as ``HOST:PORT`` [3883]). ``up`` [z; y for
-    optitrack]; the other options as for VRPN. The library's connect holds the GIL (see
-    :mod:`drivers.mocap.motioncapture_client`). Example:
+    optitrack]; the other options as for VRPN. The library runs in a child process, so a
+    silent host costs ``connect_timeout_s`` and a clear error, never a frozen ground station
+    (see :mod:`drivers.mocap.motioncapture_client`). Example:
     ``motioncapture://vicon?host=192.168.1.5&body=fasthex``.
 
 ``qtm://HOST[:PORT]?body=NAME&component=6d|6dres|6deuler|6deulerres&frequency_hz=F&udp=0|1&local=IP&up=y|z&units=m|mm&latency_ms=F&range_m=F``

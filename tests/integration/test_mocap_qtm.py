@@ -14,7 +14,6 @@ from __future__ import annotations
 import asyncio
 import json
 import math
-import os
 import random
 import socket
 import subprocess
@@ -241,49 +240,22 @@ def test_that_the_motioncapture_qualisys_backend_reads_our_qtm_server() -> None:
     assert bodies["pad"][0] == pytest.approx(PAD.pos_w_m, abs=1e-6)
 
 
-EMULATOR = """
-import json, sys
-from sim_backend.emulators.qtm import QtmEmulatorConfig, QtmServer, QtmStaticBody
-from sim_backend.vehicle import BenchVehicle, PoseReading
-pos_w_m, q_wb, pad = json.loads(sys.argv[1])
-
-class Posed(BenchVehicle):
-    def true_pose(self):
-        return PoseReading(self.now_s(), tuple(pos_w_m), tuple(q_wb))
-
-cfg = QtmEmulatorConfig(port=0, rate_hz=200.0, static_bodies=(QtmStaticBody("pad", tuple(pad)),))
-with QtmServer(Posed(), cfg) as server:
-    print(server.port, flush=True)
-    sys.stdin.read()  # serve until the test closes our stdin
-"""
-
-
 def test_that_the_motioncapture_adapter_reads_the_world_pose_from_our_qtm_server() -> None:
-    # Fixture: the server in a child process, as the library's connect holds the GIL through
-    # its handshake (an in-process server could not answer it). The URI names the RT port
-    # itself, as qtm:// does; the adapter hands the library the base port below it.
-    root = Path(__file__).resolve().parents[2]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
-        [str(root), *filter(None, [os.environ.get("PYTHONPATH")])])}
-    args = json.dumps([POS_W_M, Q_TILTED, PAD.pos_w_m])
-    with subprocess.Popen([sys.executable, "-c", EMULATOR, args], env=env, text=True,
-                          stdin=subprocess.PIPE, stdout=subprocess.PIPE) as emulator:
-        try:
-            assert emulator.stdout is not None
-            port = int(emulator.stdout.readline())
-            uri = f"motioncapture://qualisys?host=127.0.0.1:{port}&body=fasthex"
-            dev = open_pose_source(uri)
-            assert isinstance(dev, MotionCaptureClient)
-            # Test
-            with dev:
-                assert dev.wait_frames(10, WAIT_S)
-                s = dev.latest()
-                stats = dev.stats()
-                bodies = dev.bodies()
-        finally:
-            emulator.communicate(timeout=WAIT_S)  # closes stdin: the server stops
+    # Fixture: the server in this process; the library runs in the adapter's child process,
+    # so its connect, which holds its own process's GIL, leaves the server's threads running.
+    # The URI names the RT port itself, as qtm:// does; the adapter hands the library the
+    # base port below it.
+    with _server(Q_TILTED) as server:
+        uri = f"motioncapture://qualisys?host=127.0.0.1:{server.port}&body=fasthex"
+        dev = open_pose_source(uri)
+        assert isinstance(dev, MotionCaptureClient)
+        # Test
+        with dev:
+            assert dev.wait_frames(10, WAIT_S)
+            s = dev.latest()
+            stats = dev.stats()
+            bodies = dev.bodies()
     # Assert: metres and the Z-up world frame, as the vehicle's true pose
-    assert emulator.returncode == 0
     assert s is not None and s.valid and s.body_name == "fasthex"
     assert s.pos_w_m == pytest.approx(POS_W_M, abs=1e-6)  # float32 mm on the wire
     assert quat_angle_rad(s.q_wb, Q_TILTED) < 1e-5  # via 6D Euler angles in float32
