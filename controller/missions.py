@@ -23,6 +23,11 @@ Each segment may carry an ``alpha`` profile (times relative to the segment start
 ``constant``, ``steps``, ``ramp`` or ``auto`` (:mod:`controller.tilt_planner`); without one a
 segment keeps the previous segment's final alpha (or stays ``auto``).
 
+``accept_lateral_shortfall: true`` on a segment says that it asks for more lateral force than
+its tilt gives on purpose (the paper's Exp. 2a/2b at low tilt show R_d leaving R_r): the
+pre-flight check (:mod:`controller.preflight`) then reports its spans as accepted instead of
+warning.
+
 Validation (before anything flies): positions lie in a sane workspace (:data:`WORKSPACE_M`),
 every takeoff climbs above where it starts, alpha steps and ramps happen inside their segment,
 and no segment asks for more than :data:`MAX_REF_SPEED_M_S` or :data:`MAX_REF_ACCEL_M_S2` (the
@@ -177,6 +182,7 @@ class HoldSegment:
     pos_w_m: tuple[float, float, float] | None = spec(None, ge=-WORKSPACE_M, le=WORKSPACE_M)
     yaw_deg: float | None = spec(None, ge=-360.0, le=360.0)
     measured: bool = True
+    accept_lateral_shortfall: bool = False
     alpha: AlphaProfile | None = None
     attitude: AttitudeBlock | None = None
 
@@ -188,6 +194,7 @@ class GoToSegment:
     pos_w_m: tuple[float, float, float] = spec(ge=-WORKSPACE_M, le=WORKSPACE_M)
     yaw_deg: float | None = spec(None, ge=-360.0, le=360.0)
     measured: bool = True
+    accept_lateral_shortfall: bool = False
     alpha: AlphaProfile | None = None
     attitude: AttitudeBlock | None = None
 
@@ -203,6 +210,7 @@ class SineSegment:
     fade_in_s: float = spec(0.0, ge=0.0, le=MAX_SEGMENT_S)
     fade_out_s: float = spec(0.0, ge=0.0, le=MAX_SEGMENT_S)
     measured: bool = True
+    accept_lateral_shortfall: bool = False
     alpha: AlphaProfile | None = None
     attitude: AttitudeBlock | None = None
 
@@ -230,6 +238,7 @@ class AttitudeSineSegment:
     fade_in_s: float = spec(0.0, ge=0.0, le=MAX_SEGMENT_S)
     fade_out_s: float = spec(0.0, ge=0.0, le=MAX_SEGMENT_S)
     measured: bool = True
+    accept_lateral_shortfall: bool = False
     alpha: AlphaProfile | None = None
     attitude: AttitudeBlock | None = None
 
@@ -249,6 +258,7 @@ class TakeoffSegment:
     height_m: float = spec(gt=-WORKSPACE_M, le=WORKSPACE_M,
                            doc="target height of O_B above the world origin")
     measured: bool = False
+    accept_lateral_shortfall: bool = False
     alpha: AlphaProfile | None = None
     attitude: AttitudeBlock | None = None
 
@@ -259,6 +269,7 @@ class LandSegment:
     duration_s: float = spec(ge=MIN_SEGMENT_S, le=600.0)
     sink_m: float = spec(0.05, ge=0.0, le=1.0, doc="aim this far below the start height")
     measured: bool = False
+    accept_lateral_shortfall: bool = False
     alpha: AlphaProfile | None = None
     attitude: AttitudeBlock | None = None
 
@@ -284,6 +295,7 @@ class CircleSegment:
     fade_in_s: float = spec(2.0, gt=0.0, le=MAX_SEGMENT_S)
     fade_out_s: float = spec(2.0, gt=0.0, le=MAX_SEGMENT_S)
     measured: bool = True
+    accept_lateral_shortfall: bool = False
     alpha: AlphaProfile | None = None
     attitude: AttitudeBlock | None = None
 
@@ -310,6 +322,7 @@ class LissajousSegment:
     fade_in_s: float = spec(2.0, gt=0.0, le=MAX_SEGMENT_S)
     fade_out_s: float = spec(2.0, gt=0.0, le=MAX_SEGMENT_S)
     measured: bool = True
+    accept_lateral_shortfall: bool = False
     alpha: AlphaProfile | None = None
     attitude: AttitudeBlock | None = None
 
@@ -332,6 +345,7 @@ class WaypointsSegment:
     max_yaw_rate_deg_s: float = spec(45.0, gt=0.0, le=MAX_REF_RATE_DEG_S)
     dwell_s: float = spec(0.0, ge=0.0, le=MAX_SEGMENT_S, doc="rest at each point")
     measured: bool = True
+    accept_lateral_shortfall: bool = False
     alpha: AlphaProfile | None = None
     attitude: AttitudeBlock | None = None
 
@@ -354,6 +368,7 @@ class RampSegment:
     yaw_deg: float | None = spec(None, ge=-360.0, le=360.0)
     smooth_s: float = spec(0.0, ge=0.0, le=MAX_SEGMENT_S)
     measured: bool = True
+    accept_lateral_shortfall: bool = False
     alpha: AlphaProfile | None = None
     attitude: AttitudeBlock | None = None
 
@@ -376,6 +391,7 @@ class TrajectorySegment:
     file: str = spec(doc="CSV file, relative to the mission file")
     origin: Literal["start", "world"] = "start"
     measured: bool = True
+    accept_lateral_shortfall: bool = False
     alpha: AlphaProfile | None = None
     attitude: AttitudeBlock | None = None
     table: TrajectoryTable = field(init=False, compare=False, repr=False)

@@ -60,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     from config import find_config
     from controller.missions import Mission
     from groundstation.cli import UserError
-    from groundstation.configs import load_mission, load_vehicle
+    from groundstation.configs import load_mission, load_vehicle, preflight_warnings
     from groundstation.session import (
         FlightSession,
         SessionError,
@@ -83,6 +83,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--clock and --seed apply to emulated sessions only")
     params = load_vehicle(resolve_reference(path, cfg.vehicle))
     mission = Mission(load_mission(resolve_reference(path, cfg.mission)))
+    for line in preflight_warnings(mission, params):  # before anything is armed
+        print(line, file=sys.stderr)
     record = Path(args.record) if args.record else Path(
         "flights") / f"{cfg.name}-{time.strftime('%Y%m%d-%H%M%S')}.fhr"
     record.parent.mkdir(parents=True, exist_ok=True)
