@@ -291,6 +291,7 @@ class CircleSegment:
     period_s: float | None = spec(None, gt=0.0, le=MAX_SEGMENT_S, doc="one turn at full rate")
     speed_m_s: float | None = spec(None, gt=0.0, le=MAX_REF_SPEED_M_S, doc="or: path speed")
     plane: Literal["xy", "xz", "yz"] = "xy"
+    # ccw turns from the plane's first axis towards its second (x to y, x to z, y to z)
     direction: Literal["ccw", "cw"] = "ccw"
     fade_in_s: float = spec(2.0, gt=0.0, le=MAX_SEGMENT_S)
     fade_out_s: float = spec(2.0, gt=0.0, le=MAX_SEGMENT_S)
