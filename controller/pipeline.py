@@ -46,9 +46,9 @@ class FlightComputer:
         self.model = model or VehicleModel(params)
         bound = LateralBound.for_model(self.model)
         self.controller = GeometricController(params, model=self.model, bound=bound)
-        # the planner's capability: the same fit without the controller's conservative scale
-        self.planner = TiltPlanner(params, capability=LateralBound(bound.coeffs_n, 1.0,
-                                                                   bound.dead_zone_deg))
+        # auto plans for the bound the controller enforces: with a larger (unscaled) capability
+        # the planner would stop short of the tilt at which R_d stays on R_r
+        self.planner = TiltPlanner(params, capability=bound)
         self.tilt_override_rad = tilt_override_rad
         self._next_auto_s = 0.0
         self._axes_alpha = math.nan

@@ -8,12 +8,12 @@ operator") the smallest tilt whose lateral-force capability covers the lateral f
 reference needs over a look-ahead horizon, plus a margin: the vehicle is only as fully actuated
 as the task requires and wastes the least internal force.
 
-Capability in ``auto`` is the admissible inscribed radius r(alpha) of the vehicle model (the
-least-squares fit, without the controller's conservative scale but with its dead zone): the
-conservative scale keeps the controller's saturation inside the hexagon with torque headroom,
-whereas the planner asks what the rotors can deliver. When the demand briefly exceeds the
-controller's conservative bound, position priority tilts R_d slightly, exactly as the paper's
-vehicle does at the peaks of Exp. 2a at 30 deg.
+Capability in ``auto`` is the controller's own lateral bound r_xy(alpha) (the fitted
+inscribed radius of the vehicle model times the conservative scale, zero in the dead zone): the
+planner picks the tilt at which the controller will actually deliver the demand, so R_d does
+not leave R_r where more tilt was available. (Planning on the unscaled radius would stop about
+20 % short, and position priority would then tilt R_d at every demand peak.) Beyond the bound at
+the maximum tilt the planner stays at the maximum and R_d gives way, as on the paper's vehicle.
 """
 
 from __future__ import annotations
@@ -37,8 +37,8 @@ class TiltPlanner:
         self.min_tilt_rad = params.tilt.min_tilt_rad
         self.max_rate_rad_s = math.radians(params.tilt.max_rate_deg_s)
         if capability is None:
-            fitted = LateralBound.for_model(model if model is not None else VehicleModel(params))
-            capability = LateralBound(fitted.coeffs_n, 1.0, fitted.dead_zone_deg)
+            capability = LateralBound.for_model(model if model is not None
+                                                else VehicleModel(params))
         self.capability = capability
         n = int(params.tilt.max_tilt_deg / AUTO_GRID_STEP_DEG) + 1
         self._grid_rad = [math.radians(i * AUTO_GRID_STEP_DEG) for i in range(n)]

@@ -19,7 +19,8 @@ def load_vehicle(name_or_path: str | Path = DEFAULT_VEHICLE) -> VehicleParams:
 
 
 # Missions (appended; imports kept here so the vehicle part above stays untouched).
-from controller.missions import MISSION_SCHEMA, MissionSpec  # noqa: E402
+from controller.missions import MISSION_SCHEMA, Mission, MissionSpec  # noqa: E402
+from controller.trajectory_csv import mission_base_dir  # noqa: E402
 
 
 def load_mission(name_or_path: str | Path, *, vehicle: VehicleParams | None = None,
@@ -31,7 +32,8 @@ def load_mission(name_or_path: str | Path, *, vehicle: VehicleParams | None = No
     """
     path = find_config("missions", name_or_path)
     lines = {} if lines is None else lines
-    spec = load_config(path, MissionSpec, schema=MISSION_SCHEMA, versions=(1,), lines=lines)
+    with mission_base_dir(path.parent):  # trajectory CSV files are relative to the mission
+        spec = load_config(path, MissionSpec, schema=MISSION_SCHEMA, versions=(1,), lines=lines)
     if vehicle is not None:
         check_mission_against_vehicle(spec, vehicle, str(path), lines)
     return spec
@@ -66,6 +68,16 @@ def check_mission_against_vehicle(mission: MissionSpec, vehicle: VehicleParams, 
             raise ConfigError(file, line_of(lines, key), key,
                               f"{value_deg:g} deg is outside vehicle {vehicle.name!r}'s tilt "
                               f"({what})")
+
+
+def preflight_warnings(mission: Mission, vehicle: VehicleParams, *,
+                       tilt_override_rad: float | None = None) -> list[str]:
+    """The pre-flight lateral-force check's warning lines (empty: nothing to say), printed by
+    ``simulate`` and ``fly`` before flying."""
+    from controller.preflight import lateral_force_shortfalls, shortfall_warnings
+
+    spans = lateral_force_shortfalls(mission, vehicle, tilt_override_rad=tilt_override_rad)
+    return shortfall_warnings(spans, mission.name)
 
 
 # Simulator disturbance presets (appended).

@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     from config import find_config
     from controller.missions import Mission
     from groundstation.cli import UserError
-    from groundstation.configs import load_mission, load_vehicle
+    from groundstation.configs import load_mission, load_vehicle, preflight_warnings
     from groundstation.console import Console
     from groundstation.gcs import summary_lines as mavlink_summary_lines
     from groundstation.session import FlightSession, SessionError, SessionInterruptedError
@@ -106,6 +106,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--clock and --seed apply to emulated sessions only")
     params = load_vehicle(resolve_reference(path, cfg.vehicle))
     mission = Mission(load_mission(resolve_reference(path, cfg.mission)))
+    for line in preflight_warnings(mission, params):  # before anything is armed
+        print(line, file=sys.stderr)
     record = record_path(args.record, cfg.telemetry.record, path, cfg.name)
     try:
         record.parent.mkdir(parents=True, exist_ok=True)

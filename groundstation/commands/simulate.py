@@ -18,6 +18,10 @@ JSON keys: ``mission``, ``vehicle``, ``preset``, ``seed``, ``estimator``, ``sim_
 Counts (``*_ticks``, ``touchdowns``) and ``sim_s_per_wall_s`` carry their unit in the name.
 Phases as in :mod:`groundstation.metrics`.
 
+Before flying, the pre-flight lateral-force check (:mod:`controller.preflight`) prints a
+warning on stderr listing the time spans where the mission needs more lateral force than the
+planned tilt gives.
+
 Verdict: ``verdict`` is ``"ok"`` or ``"crash"``, with ``crash_reason`` (text, ``null`` when ok),
 ``crash_kind`` (``impact``, ``workspace``, ``non-finite``) and ``crash_t_s``. A crash is a
 touchdown faster than ``--max-touchdown-speed`` (default
@@ -73,7 +77,12 @@ def simulate(args: argparse.Namespace) -> dict[str, Any]:
     """Run the flight described by ``args``; return the summary dictionary."""
     from controller.missions import Mission
     from groundstation.cli import UserError
-    from groundstation.configs import load_disturbances, load_mission, load_vehicle
+    from groundstation.configs import (
+        load_disturbances,
+        load_mission,
+        load_vehicle,
+        preflight_warnings,
+    )
     from groundstation.metrics import flight_metrics
     from groundstation.record import RecordWriter
     from sim_backend.closed_loop import StateSource, UkfStateSource, fly_mission
@@ -89,6 +98,8 @@ def simulate(args: argparse.Namespace) -> dict[str, Any]:
     if args.tilt_deg is not None and not lo_deg <= args.tilt_deg <= hi_deg:
         raise UserError(f"--tilt-deg {args.tilt_deg:g}: outside the tilt range of vehicle "
                         f"{params.name!r} ({lo_deg:g} .. {hi_deg:g} deg)")
+    for line in preflight_warnings(mission, params, tilt_override_rad=tilt):
+        print(line, file=sys.stderr)
     source: StateSource | None = None
     preroll_s = 0.0
     if args.estimator == "ukf":

@@ -70,8 +70,7 @@ def test_that_a_session_naming_a_missing_mission_is_refused(tmp_path: Path) -> N
     # the session file and the line of its key, not the bare name
     assert str(info.value) == (
         f"{path}:{_line_of(text, 'mission:')}: mission: no such mission 'exp9' (shipped: "
-        "exp1-hover-tilt-steps, exp2a-sine-translation, exp2a-sine-translation-auto, "
-        "exp2b-roll-sine)")
+        f"{', '.join(available('missions'))})")
 
 
 def test_that_errors_in_a_referenced_vehicle_file_name_that_file(tmp_path: Path) -> None:
