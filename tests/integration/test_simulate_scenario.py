@@ -7,13 +7,16 @@ scenario's effect alone and a prediction from statics holds to the integrators' 
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from config.schema import load_config_text
 from controller.missions import MISSION_SCHEMA, Mission, MissionSpec
+from groundstation.cli import main
 from groundstation.configs import load_disturbances, load_vehicle
 from groundstation.record import RecordWriter
 from sim_backend.closed_loop import UkfStateSource, fly_mission
@@ -177,3 +180,21 @@ def test_that_a_scheduled_mocap_dropout_degrades_the_ukf_estimate_over_its_windo
     # and the first frames after the window bring it back to the undisturbed level
     after = (t >= t0_s + dur_s + 0.15) & (t < t0_s + dur_s + 2.0)
     assert err_drop[after].max() < 1.5 * err_base[after].max()
+
+
+def test_that_simulate_flies_a_named_scenario_and_refuses_a_wrong_one_at_its_line(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Fixture: a scenario whose gust starts after the mission (Exp. 1: 87 s)
+    late = tmp_path / "late.yaml"
+    late.write_text("schema: fasthex.scenario\nversion: 1\nname: late\ndisturbances:\n"
+                    "  - {kind: gust, force_n: [1, 0, 0], start_s: 90.0, duration_s: 1.0}\n")
+    # Test
+    code = main(["simulate", "exp1-hover-tilt-steps", "--preset", "ideal", "--duration", "2",
+                 "--scenario", "payload-gust", "--json"])
+    out = json.loads(capsys.readouterr().out)
+    bad = main(["simulate", "exp1-hover-tilt-steps", "--scenario", str(late), "--json"])
+    err = capsys.readouterr().err
+    # Assert
+    assert code == 0 and out["scenario"] == "payload-gust"
+    assert bad == 2
+    assert f"{late}:5: disturbances[0].start_s: 90..91 s is not within the mission" in err
