@@ -222,3 +222,37 @@ def test_that_a_session_resolves_and_validates_its_scenario(
 def test_that_a_scenario_default_is_the_nominal_plant_and_nothing_scheduled() -> None:
     sc = Scenario(name="x")
     assert sc.plant.is_nominal and sc.disturbances == () and sc.scheduled_faults() == ()
+
+
+def test_that_the_emulated_backend_builds_the_plant_and_anchors_the_schedule_on_request(
+        tmp_path: Path) -> None:
+    from sim_backend.backend import BackendOptions, EmulatedVehicleBackend
+
+    # Fixture: a payload, a pulse at 2 s and three faults, in mission seconds
+    sc = Scenario(name="b", plant=PlantOverrides(payload_kg=0.2),
+                  disturbances=(DisturbanceEvent(kind="pulse", force_n=(1.0, 0.0, 0.0),
+                                                 start_s=2.0, duration_s=0.5),),
+                  faults=("rotor-thrust@1:0.5:2", "mocap-latency@1.5:0.05", "imu-gap@3:0.1"))
+    backend = EmulatedVehicleBackend(BackendOptions(
+        vehicle=PARAMS, preset=IDEAL, start_pos_w_m=(0.0, 0.0, 0.1), seed=5,
+        link_dir=tmp_path, scenario=sc))
+    try:
+        sim = backend.sim
+        assert sim.params.mass_kg == pytest.approx(PARAMS.mass_kg + 0.2)
+        c_f = list(sim.c_f_actual)
+        backend.vehicle.advance(0.5)
+        # Test: nothing scheduled before the ground station's start, then from its time on
+        assert backend.vehicle.scheduled == [] and sim.schedule.t0_s is None
+        t0 = backend.start_scenario()
+        assert t0 == pytest.approx(0.5) and backend.start_scenario() == t0  # once
+        assert [round(t - t0, 6) for t, _ in backend.vehicle.scheduled] == [1.0, 1.5, 3.0]
+        backend.vehicle.advance(1.6)
+        # Assert: rotor 2 halved, the MoCap's latency stepped, an IMU gap at mission 3 s
+        assert sim.c_f_actual == [c * (0.5 if i == 1 else 1.0) for i, c in enumerate(c_f)]
+        assert backend.mocap.config.latency_s == 0.05
+        wire = backend.flight_ctrl.imu_wire_fault
+        assert wire is not None and wire(0, t0 + 3.05) and not wire(0, t0 + 2.9)
+        assert sim.schedule.wrench(t0 + 2.2) is not None
+        assert sim.schedule.wrench(t0 + 1.9) is None
+    finally:
+        backend.stop()
