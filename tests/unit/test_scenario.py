@@ -256,3 +256,34 @@ def test_that_the_emulated_backend_builds_the_plant_and_anchors_the_schedule_on_
         assert sim.schedule.wrench(t0 + 1.9) is None
     finally:
         backend.stop()
+
+
+def test_that_in_process_faults_freeze_the_tilt_step_the_latency_and_lose_imu_samples(
+        ) -> None:
+    from sim_backend.scenario import InProcessFaults
+
+    # Fixture: mission time 0 at simulated 1 s
+    sim = FastHexSimulator(PARAMS, IDEAL, seed=1)
+    sim.advance(1.0)
+    faults = InProcessFaults(sim, [ScheduledFault.parse(f) for f in (
+        "servo-silent@0.5", "mocap-latency@0.5:0.05", "imu-rate@1:0.5")], t0_s=1.0)
+    # Test
+    sim.command_tilt_rad(math.radians(10.0))
+    for _ in range(250):  # 0.5 s in 2 ms ticks, as the closed loop runs them
+        faults.run_due(sim.now_s())
+        sim.advance(0.002)
+    faults.run_due(sim.now_s())
+    tilt_at_silence = sim.tilt_rad()
+    sim.command_tilt_rad(math.radians(30.0))  # not heard
+    sim.poll_mocap()
+    sim.advance(0.5)
+    frames = sim.poll_mocap()
+    lost = [faults.imu_lost(1.0 + 0.002 * k) for k in range(1000)]
+    # Assert: the servo went on to its last goal (5 deg at 10 deg/s in 0.5 s, then 10 deg)
+    assert math.degrees(tilt_at_silence) == pytest.approx(5.0, abs=0.1)
+    assert math.degrees(sim.tilt_rad()) == pytest.approx(10.0, abs=1e-6)
+    # frames now arrive 50 ms after their capture
+    assert frames and all(sim.now_s() - f.t_s >= 0.05 - 1e-9 for f in frames)
+    assert min(sim.now_s() - f.t_s for f in frames) < 0.06
+    # half of the IMU samples from mission time 1 s on, none before
+    assert not any(lost[:500]) and sum(lost[500:]) == 250
