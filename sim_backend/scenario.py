@@ -20,8 +20,9 @@ file). It has three parts:
 **Time.** Every scenario time is in mission seconds: 0 is the start of the mission (its
 take-off), as in the mission file. ``simulate`` starts the schedule when the mission clock
 starts (after the estimator's rest on the ground); in ``fly`` the ground station tells the
-emulated vehicle when it enters the take-off (:meth:`Scenario` is anchored there by the backend).
-A take-off that waits for its height in ``fly`` shifts the mission clock, not the scenario's.
+emulated vehicle when it enters the take-off and the backend anchors the schedule at that
+simulated time (:meth:`sim_backend.backend.EmulatedVehicleBackend.start_scenario`). A take-off
+that waits for its height in ``fly`` shifts the mission clock, not the scenario's.
 
 Validation: ranges per field on load (``FILE:LINE: KEY.PATH: expectation``), then against the
 vehicle (:func:`check_scenario_against_vehicle`: the plant must still be a vehicle that lifts
@@ -193,6 +194,8 @@ class DisturbanceEvent:
 
 @dataclass(frozen=True, kw_only=True)
 class Scenario:
+    """One scenario file: the plant, the scheduled disturbances and faults (module docstring)."""
+
     name: str
     description: str = spec("")
     plant: PlantOverrides = field(default_factory=PlantOverrides)
