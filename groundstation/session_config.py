@@ -6,8 +6,9 @@ and the telemetry outputs. It is validated completely, including the files it re
 any port is opened: :func:`load_session` reads the session, resolves the vehicle, mission and
 disturbance references (a missing one is reported at the session's line of the key), validates
 each file on its own, then across files: the mission against the vehicle (tilt range) and
-against the geofence (every reference position inside it by :data:`GEOFENCE_MARGIN_M`), and the
-emulated MoCap against the session's timeouts.
+against the geofence (every reference position inside it by :data:`GEOFENCE_MARGIN_M`), the
+emulated MoCap against the session's timeouts, and an emulated session's scenario
+(``backend.scenario``, :mod:`sim_backend.scenario`) against the vehicle and the mission.
 """
 
 from __future__ import annotations
