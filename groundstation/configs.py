@@ -90,3 +90,27 @@ def load_disturbances(name_or_path: str | Path = DEFAULT_DISTURBANCES) -> Distur
     """A simulator disturbance preset by name (``ideal``, ``paper-calibrated``) or file."""
     return load_config(find_config("disturbances", name_or_path), DisturbancePreset,
                        schema=DISTURBANCES_SCHEMA, versions=(1,))
+
+
+# Scenarios (appended): plant overrides, scheduled disturbances and faults.
+from sim_backend.scenario import (  # noqa: E402
+    SCENARIO_SCHEMA,
+    Scenario,
+    check_scenario_against_mission,
+    check_scenario_against_vehicle,
+)
+
+
+def load_scenario(name_or_path: str | Path, *, vehicle: VehicleParams | None = None,
+                  mission_duration_s: float | None = None,
+                  lines: dict[str, int] | None = None) -> Scenario:
+    """A shipped scenario by name or a scenario YAML file, checked against the vehicle (the
+    plant still flies) and the mission's duration (every event inside it) when given."""
+    path = find_config("scenarios", name_or_path)
+    lines = {} if lines is None else lines
+    scenario = load_config(path, Scenario, schema=SCENARIO_SCHEMA, versions=(1,), lines=lines)
+    if vehicle is not None:
+        check_scenario_against_vehicle(scenario, vehicle, str(path), lines)
+    if mission_duration_s is not None:
+        check_scenario_against_mission(scenario, mission_duration_s, str(path), lines)
+    return scenario

@@ -164,6 +164,9 @@ class FlightLoop:
         self._takeoff_target_z = mission.reference(self._takeoff_end_tm).pos_w_m[2]
         self.row_sink = row_sink
         self.event_sink = event_sink
+        #: called once when the mission clock starts (take-off): an emulated vehicle's scenario
+        #: is timed from there (sim_backend.scenario)
+        self.on_mission_start: Callable[[], None] | None = None
         self.period_ns = round(1e9 / options.imu_rate_hz)
         self.timer = LoopTimer(1.0 / options.imu_rate_hz)
         #: operator requests from other threads (signal handler, MAVLink): deque is atomic
@@ -422,6 +425,8 @@ class FlightLoop:
                 if sm.state is FlightState.ARMED and armed_tick < 0:
                     armed_tick = n
                 if sm.state is FlightState.TAKEOFF:
+                    if takeoff_t_s is None and self.on_mission_start is not None:
+                        self.on_mission_start()
                     takeoff_t_s = t_s
                     tm = 0.0
                 land_here = self._act_on_transitions(prev_state, t_s, est_state) or land_here

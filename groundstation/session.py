@@ -122,6 +122,9 @@ class EmulatorProcess:
                  "--mocap", cfg.mocap]
         if truth_path is not None:
             args += ["--truth", str(truth_path)]
+        if cfg.scenario:  # resolved to a file by load_session
+            args += ["--scenario", cfg.scenario]
+        self.lockstep = cfg.clock == "lockstep"
         args += ["--realtime-settings", "on" if realtime_settings else "off"]
         # A session of its own: the terminal's SIGINT (sent to the whole foreground process
         # group) and a SIGTERM/SIGHUP to our group never reach the emulated board, which the
@@ -147,6 +150,23 @@ class EmulatorProcess:
             self.devices[msg["device"]] = msg["address"]
         self.close()
         raise SessionError("the emulated vehicle did not get ready within 60 s")
+
+    def start_scenario(self) -> None:
+        """Tell the emulated vehicle that the mission clock starts now (its scenario's time 0).
+        Lockstep: wait for the answer, so that the anchor is this tick's simulated time (the
+        physics waits for this tick's ``w``); realtime: the line is enough."""
+        import select
+
+        try:
+            assert self.proc.stdin is not None and self.proc.stdout is not None
+            self.proc.stdin.write("scenario-start\n")
+            self.proc.stdin.flush()
+            if self.lockstep:
+                ready, _, _ = select.select([self.proc.stdout], [], [], 5.0)
+                if ready:
+                    self.proc.stdout.readline()
+        except (OSError, ValueError) as exc:  # a dead emulator is the loop's to notice
+            log.warning("scenario start not delivered to the emulated vehicle: %s", exc)
 
     def close(self) -> None:
         if self.proc.poll() is None:
@@ -436,6 +456,9 @@ class FlightSession:
                 row_sink=row_sink, event_sink=event_sink)
             loop.shared_status = status
             loop.command_queue = commands
+            if self.emulator is not None and isinstance(backend, EmulatedBackend) \
+                    and backend.scenario:
+                loop.on_mission_start = self.emulator.start_scenario
             loop.requests = self.requests  # stop requests that came during start-up stand
             loop_box.append(loop)
             self.loop = loop

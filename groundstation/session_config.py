@@ -6,8 +6,9 @@ and the telemetry outputs. It is validated completely, including the files it re
 any port is opened: :func:`load_session` reads the session, resolves the vehicle, mission and
 disturbance references (a missing one is reported at the session's line of the key), validates
 each file on its own, then across files: the mission against the vehicle (tilt range) and
-against the geofence (every reference position inside it by :data:`GEOFENCE_MARGIN_M`), and the
-emulated MoCap against the session's timeouts.
+against the geofence (every reference position inside it by :data:`GEOFENCE_MARGIN_M`), the
+emulated MoCap against the session's timeouts, and an emulated session's scenario
+(``backend.scenario``, :mod:`sim_backend.scenario`) against the vehicle and the mission.
 """
 
 from __future__ import annotations
@@ -67,8 +68,8 @@ class EmulatedBackend:
     faults: tuple[str, ...] = spec((), doc="faults to rehearse, KIND@T[:VALUE], T in simulated "
                                    "seconds: mocap-dropout:S, fc-disconnect, servo-silent, "
                                    "battery-sag:V, tilt-kick:DEG_S, imu-rate:FRACTION, "
-                                   "imu-gap:S, mocap-jump:M, rotor-thrust:SCALE, "
-                                   "mocap-freeze")
+                                   "imu-gap:S, mocap-jump:M, rotor-thrust:SCALE[:ROTOR], "
+                                   "mocap-freeze, mocap-latency:S")
     corrupt_prob: float = spec(0.0, ge=0.0, le=0.1,
                                doc="byte corruption probability on the Flight-Ctrl link")
     # clock errors to rehearse the time base on (realtime; lockstep: see the emulator)
@@ -81,9 +82,11 @@ class EmulatedBackend:
                                   doc="rate error of the MoCap server's clock")
     mocap: Literal["natnet", "qtm"] = spec("natnet", doc="emulated MoCap server: natnet "
                                            "(Motive, UDP) or qtm (Qualisys QTM RT, TCP)")
+    scenario: str = spec("", doc="scenario (plant overrides, scheduled disturbances and faults "
+                         "in mission seconds): name or file; empty: none")
 
     def __post_init__(self) -> None:
-        from sim_backend.backend import ScheduledFault
+        from sim_backend.faults import ScheduledFault
 
         for i, text in enumerate(self.faults):
             try:
@@ -209,6 +212,18 @@ def load_session(name_or_path: str | Path) -> SessionConfig:
         _check_emulated_mocap(preset, session, str(preset_path), path, lines)
         if Path(backend.disturbances).suffix in (".yaml", ".yml"):
             session = replace(session, backend=replace(backend, disturbances=str(preset_path)))
+        if backend.scenario:
+            from controller.missions import Mission
+            from groundstation.configs import load_scenario
+
+            scenario_path = _reference(path, lines, "backend.scenario", "scenarios",
+                                       backend.scenario)
+            load_scenario(scenario_path, vehicle=params,
+                          mission_duration_s=Mission(mission).duration_s)
+            # the emulator reads the file validated here, whatever its working directory
+            emulated = session.backend
+            assert isinstance(emulated, EmulatedBackend)
+            session = replace(session, backend=replace(emulated, scenario=str(scenario_path)))
     key_file = session.telemetry.mavlink_key_file
     if key_file:  # relative to the session file, like its other references; it must exist
         key_path = Path(key_file).expanduser()

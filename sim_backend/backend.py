@@ -14,7 +14,14 @@ the IMU sample of that time: a ground station that drains its MoCap socket when 
 IMU sample sees exactly the poses due by then, so lockstep flights are deterministic.
 
 Run as ``python -m sim_backend.backend --vehicle fasthex --disturbances paper-calibrated
---start X Y Z --seed N --clock lockstep --link-dir DIR``. It prints one JSON line per device
+--start X Y Z --seed N --clock lockstep --link-dir DIR [--scenario FILE]``.
+
+A scenario (:mod:`sim_backend.scenario`) sets the simulated plant at once; its disturbances and
+faults are timed in mission seconds and wait for the ground station's ``scenario-start`` line on
+stdin (sent when its mission clock starts): the backend anchors the schedule at its simulated
+time then and answers ``{"scenario_t0_s": T}``. In lockstep the physics stands still until the
+ground station's next ``w`` frame, so the anchor is the time of the IMU sample the ground station
+is answering. It prints one JSON line per device
 (``{"device": "flight-ctrl", "kind": "pty", "address": PATH}``) and then ``{"ready": true}``,
 and runs until SIGINT/SIGTERM, a ``quit`` line on stdin, or the death of its parent (stdin
 closing without ``quit``): then it first lets the emulated board's watchdog stop the motors.
@@ -54,6 +61,16 @@ from sim_backend.emulators.flightctrl import (
 )
 from sim_backend.emulators.natnet import NatNetEmulatorConfig, NatNetServer
 from sim_backend.emulators.qtm import QtmEmulatorConfig, QtmServer
+from sim_backend.faults import (  # noqa: F401  (re-exported: the backend's fault API)
+    FAULT_KINDS,
+    SIGNED_FAULT_KINDS,
+    TILT_KICK_S,
+    TILT_KICK_STEPS,
+    FaultKind,
+    ImuWireLoss,
+    ScheduledFault,
+)
+from sim_backend.scenario import SCENARIO_SCHEMA, Scenario
 from sim_backend.simulator import FastHexSimulator
 from sim_backend.vehicle import EmulatedVehicle, ImuReading, PoseReading
 
@@ -82,99 +99,7 @@ class BackendOptions:
     mocap_clock_offset_s: float = 0.0
     mocap_clock_ppm: float = 0.0
     mocap: Literal["natnet", "qtm"] = "natnet"  # which MoCap server the vehicle is seen by
-
-
-FaultKind = Literal["mocap-dropout", "fc-disconnect", "servo-silent", "battery-sag",
-                    "tilt-kick", "imu-rate", "imu-gap", "mocap-jump"]
-
-
-@dataclass(frozen=True)
-class ScheduledFault:
-    """A fault to inject at a simulated time: ``kind@T`` or ``kind@T:VALUE`` (T in seconds).
-
-    Kinds and their VALUE:
-
-    - ``mocap-dropout@T:SECONDS``: the markers are occluded for that long;
-    - ``fc-disconnect@T``: the Flight-Ctrl cable is pulled;
-    - ``servo-silent@T``: the servo stops answering;
-    - ``battery-sag@T:VOLTS``: from T on the pack reads VOLTS lower (a failing cell);
-    - ``tilt-kick@T:DEG_S``: from T the body's roll rate is pushed up by DEG_S within
-      ``TILT_KICK_S`` (an impulsive torque, as from a blow to an arm);
-    - ``imu-rate@T:FRACTION``: from T on only FRACTION of the IMU samples reach the host (the
-      others are lost on the wire, spread evenly: a degraded link);
-    - ``imu-gap@T:SECONDS``: every IMU sample of that span is lost on the wire;
-    - ``mocap-jump@T:METRES``: from T on the MoCap reports the body that far off along world x
-      (a marker swap, a recalibrated room);
-    - ``rotor-thrust@T:SCALE``: from T on every rotor's thrust is SCALE times the model's
-      (0: propellers off, or rotors that cannot lift);
-    - ``mocap-freeze@T``: from T on the MoCap keeps reporting the pose it had at T (a frozen
-      tracker that still streams).
-    """
-
-    kind: FaultKind
-    t_s: float
-    duration_s: float = 0.0
-    """The VALUE: a duration (s) for ``mocap-dropout`` and ``imu-gap``, else the kind's unit."""
-
-    @property
-    def value(self) -> float:
-        return self.duration_s
-
-    @classmethod
-    def parse(cls, text: str) -> ScheduledFault:
-        kind, _, when = text.partition("@")
-        t, _, dur = when.partition(":")
-        if kind not in FAULT_KINDS or not t:
-            raise ValueError(f"fault {text!r}: expected KIND@T[:VALUE] with KIND one of "
-                             f"{', '.join(FAULT_KINDS)}")
-        try:
-            t_s, dur_s = float(t), float(dur) if dur else 0.0
-        except ValueError:
-            raise ValueError(f"fault {text!r}: T and VALUE are numbers") from None
-        if not (math.isfinite(t_s) and math.isfinite(dur_s)):
-            raise ValueError(f"fault {text!r}: T and VALUE must be finite")
-        if t_s < 0.0 or (dur_s < 0.0 and kind not in SIGNED_FAULT_KINDS):
-            raise ValueError(f"fault {text!r}: times must be >= 0")
-        if kind == "imu-rate" and not 0.0 <= dur_s <= 1.0:
-            raise ValueError(f"fault {text!r}: FRACTION of the IMU samples in [0, 1]")
-        if kind == "rotor-thrust" and not 0.0 <= dur_s <= 2.0:
-            raise ValueError(f"fault {text!r}: SCALE of the rotors' thrust in [0, 2]")
-        if kind in ("battery-sag", "imu-rate", "mocap-jump", "tilt-kick") and not dur:
-            raise ValueError(f"fault {text!r}: {kind} needs a VALUE ({kind}@T:VALUE)")
-        return cls(kind, t_s, dur_s)  # type: ignore[arg-type]
-
-
-FAULT_KINDS = ("mocap-dropout", "fc-disconnect", "servo-silent", "battery-sag", "tilt-kick",
-               "imu-rate", "imu-gap", "mocap-jump", "rotor-thrust", "mocap-freeze")
-#: a tilt kick acts over this time, in this many equal steps of the body rate
-TILT_KICK_S = 0.05
-TILT_KICK_STEPS = 25
-#: kinds whose VALUE may be negative (a direction)
-SIGNED_FAULT_KINDS = ("tilt-kick", "mocap-jump")
-
-
-class ImuWireLoss:
-    """Which IMU samples the scheduled faults lose on the wire (the emulated board's
-    ``imu_wire_fault`` hook, called with each sample's index and simulated time)."""
-
-    def __init__(self, faults: Sequence[ScheduledFault]) -> None:
-        self.gaps = [(f.t_s, f.t_s + f.value) for f in faults if f.kind == "imu-gap"]
-        rates = [(f.t_s, f.value) for f in faults if f.kind == "imu-rate"]
-        self.rate = min(rates) if rates else None  # (from, fraction kept)
-        self._first: int | None = None
-
-    def __call__(self, index: int, t_s: float) -> bool:
-        t = t_s + 1e-9  # the sample times are whole nanoseconds
-        if any(a <= t < b for a, b in self.gaps):
-            return True
-        if self.rate is None or t < self.rate[0]:
-            return False
-        if self._first is None:
-            self._first = index
-        k, keep = index - self._first, self.rate[1]
-        # Bresenham: sample k survives where floor(k keep) steps up, so any n successive
-        # samples keep n * keep of them (+-1)
-        return math.floor((k + 1) * keep + 1e-9) == math.floor(k * keep + 1e-9)
+    scenario: Scenario | None = None
 
 
 @dataclass(frozen=True)
@@ -291,8 +216,12 @@ class EmulatedVehicleBackend:
     def __init__(self, opts: BackendOptions) -> None:
         self.opts = opts
         p = opts.preset
-        self.sim = FastHexSimulator(opts.vehicle, p, seed=opts.seed,
-                                    start_pos_w_m=opts.start_pos_w_m)
+        sc = opts.scenario
+        # the plant is the scenario's; the ground station flies with the vehicle file
+        self.sim = FastHexSimulator(opts.vehicle if sc is None else sc.plant_params(opts.vehicle),
+                                    p, seed=opts.seed, start_pos_w_m=opts.start_pos_w_m,
+                                    plant=None if sc is None else sc.plant,
+                                    disturbances=() if sc is None else sc.disturbances)
         self.vehicle = _SteppedVehicle(self.sim)
         assert isinstance(self.vehicle, EmulatedVehicle)
         self.lock = threading.Lock()
@@ -348,6 +277,32 @@ class EmulatedVehicleBackend:
         if any(f.kind in ("imu-rate", "imu-gap") for f in opts.faults):
             self.flight_ctrl.imu_wire_fault = ImuWireLoss(opts.faults)
         self._started = False
+        self.scenario_t0_s: float | None = None
+
+    def start_scenario(self) -> float:
+        """Anchor the scenario's schedule (mission time 0) at the present simulated time and
+        schedule its faults; returns that time. Idempotent: a second call changes nothing."""
+        sc = self.opts.scenario
+        with self.lock:  # the Flight-Ctrl thread advances the physics under this lock
+            if self.scenario_t0_s is not None:
+                return self.scenario_t0_s
+            t0 = self.sim.now_s()
+            self.scenario_t0_s = t0
+            if sc is None:
+                return t0
+            self.sim.start_scenario(t0)
+            shifted = [dataclasses.replace(f, t_s=f.t_s + t0) for f in sc.scheduled_faults()]
+            actions = list(self.vehicle.scheduled)
+            for fault in shifted:
+                times = ([fault.t_s + i * TILT_KICK_S / TILT_KICK_STEPS
+                          for i in range(TILT_KICK_STEPS)] if fault.kind == "tilt-kick"
+                         else [fault.t_s])
+                actions += [(t, self._fault_action(fault)) for t in times]
+            self.vehicle.scheduled[:] = sorted(actions, key=lambda a: a[0])
+            wire = [*self.opts.faults, *shifted]
+            if any(f.kind in ("imu-rate", "imu-gap") for f in shifted):
+                self.flight_ctrl.imu_wire_fault = ImuWireLoss(wire)
+            return t0
 
     def _fault_action(self, fault: ScheduledFault) -> Callable[[], None]:
         if fault.kind == "mocap-dropout":
@@ -366,7 +321,12 @@ class EmulatedVehicleBackend:
                 vehicle.mocap_offset_w_m = (o[0] + fault.value, o[1], o[2])
             return jump
         if fault.kind == "rotor-thrust":
-            return lambda: self.sim.scale_rotor_thrust(fault.value)
+            return lambda: self.sim.scale_rotor_thrust(fault.value, fault.rotor)
+        if fault.kind == "mocap-latency":
+            def latency() -> None:  # frames already queued keep their transmit time
+                self.mocap.config = dataclasses.replace(self.mocap.config,
+                                                        latency_s=fault.value)
+            return latency
         if fault.kind == "mocap-freeze":
             def freeze() -> None:
                 vehicle.mocap_frozen = vehicle.true_pose()
@@ -448,6 +408,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="the MoCap server's clock minus the emulator's (>= 0)")
     ap.add_argument("--mocap-clock-ppm", type=float, default=0.0,
                     help="rate error of the MoCap server's clock")
+    ap.add_argument("--scenario", type=Path, default=None, metavar="FILE",
+                    help="scenario file: plant overrides now, disturbances and faults from "
+                    "the ground station's scenario-start on")
     ap.add_argument("--mocap", choices=("natnet", "qtm"), default="natnet",
                     help="emulated MoCap server: NatNet (Motive, UDP) or Qualisys QTM RT (TCP)")
     args = ap.parse_args(argv)
@@ -463,13 +426,15 @@ def main(argv: list[str] | None = None) -> int:
                           schema=VEHICLE_SCHEMA)
     preset = load_config(find_config("disturbances", args.disturbances), DisturbancePreset,
                          schema=DISTURBANCES_SCHEMA)
+    scenario = None if args.scenario is None else load_config(
+        args.scenario, Scenario, schema=SCENARIO_SCHEMA)
     backend = EmulatedVehicleBackend(BackendOptions(
         vehicle=vehicle, preset=preset, start_pos_w_m=(args.start[0], args.start[1], args.start[2]),
         seed=args.seed, clock=args.clock, link_dir=args.link_dir,
         wire_faults=WireFaults(corrupt_prob=args.corrupt_prob, seed=args.seed),
         watchdog_s=args.watchdog_s, faults=faults, truth_path=args.truth,
         board_clock_ppm=args.board_clock_ppm, mocap_clock_offset_s=args.mocap_clock_offset_s,
-        mocap_clock_ppm=args.mocap_clock_ppm, mocap=args.mocap,
+        mocap_clock_ppm=args.mocap_clock_ppm, mocap=args.mocap, scenario=scenario,
     ))
     stop = _StopFlags()
     # Handlers only set a flag; the C-level wake-up byte ends the main thread's wait at once.
@@ -495,6 +460,10 @@ def main(argv: list[str] | None = None) -> int:
             # died (its end of the pipe closes before the kernel re-parents us).
             with contextlib.suppress(Exception):
                 for line in sys.stdin:
+                    if line.strip() == "scenario-start":
+                        t0 = backend.start_scenario()
+                        print(json.dumps({"scenario_t0_s": t0}), flush=True)
+                        continue
                     if line.strip() == "quit":
                         stop.request(orphaned=False)
                         return

@@ -42,6 +42,7 @@ from controller.reference import (
     rot_to_quat,
 )
 from sim_backend.disturbances import DisturbancePreset
+from sim_backend.scenario import InProcessFaults, Scenario
 from sim_backend.sensors import NormalStream
 from sim_backend.simulator import FastHexSimulator
 from sim_backend.vehicle import ImuReading, PoseReading
@@ -245,6 +246,7 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
                 preroll_s: float = 0.0,
                 on_tick: Callable[[float, FastHexSimulator], None] | None = None,
                 crash_limits: CrashLimits | None = None,
+                scenario: Scenario | None = None,
                 ) -> FlightResult:
     """Fly ``mission`` in the simulator from rest on the ground, one row per tick to ``sink``.
 
@@ -258,11 +260,19 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
     after the state source, before the controller (analysis: the simulator's truth).
     ``crash_limits`` (default :class:`CrashLimits` with no workspace) end the flight at a crash,
     named in the result's ``crash``; the crash tick is the last row.
+    ``scenario`` (:mod:`sim_backend.scenario`): the simulator flies its plant (the controller
+    keeps ``params``), and its disturbances and faults are scheduled from mission time 0. An
+    IMU sample a fault loses reaches neither the state source nor the controller: the tick
+    holds the last command and writes no row (the ground station's answer to a lost sample);
+    the MoCap frames of that tick arrive with the next sample.
     Returns the metadata a record header should carry, with timing.
     """
     computer = FlightComputer(params, mission, tilt_override_rad=tilt_override_rad)
-    sim = FastHexSimulator(params, preset, seed=seed, start_pos_w_m=mission.start_pos_w_m,
-                           start_q_wb=mission.start_q_wb)
+    plant = params if scenario is None else scenario.plant_params(params)
+    sim = FastHexSimulator(plant, preset, seed=seed, start_pos_w_m=mission.start_pos_w_m,
+                           start_q_wb=mission.start_q_wb,
+                           plant=None if scenario is None else scenario.plant,
+                           disturbances=() if scenario is None else scenario.disturbances)
     rng = np.random.default_rng([seed, 7])
     source: StateSource = state_source if state_source is not None else \
         TruthPlusNoise(sim.state, preset, rng)
@@ -272,6 +282,8 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
             "measured_interval_s": mission.measured_interval_s()}
     if tilt_override_rad is not None:
         meta["tilt_override_deg"] = math.degrees(tilt_override_rad)
+    if scenario is not None:
+        meta["scenario"] = scenario.name
     writer: RowSink = sink if sink is not None else _NullSink()
     end_s = duration_s if duration_s is not None else mission.duration_s + 0.5
     dt = 1.0 / CONTROL_RATE_HZ
@@ -284,12 +296,26 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
         source.update(sim.now_s(), sim.read_imu(), sim.poll_mocap())
         sim.advance(dt)
     t_offset = sim.now_s()
+    faults: InProcessFaults | None = None
+    if scenario is not None:
+        sim.start_scenario(t_offset)
+        faults = InProcessFaults(sim, scenario.scheduled_faults(), t_offset)
     touchdowns = len(sim.touchdown_speeds_m_s)
     ticks = 0
+    held_mocap: list[PoseReading] = []
     for k in range(n_ticks):
         t = k * dt
+        if faults is not None:
+            faults.run_due(sim.now_s())
+            if faults.imu_lost(sim.now_s()):
+                held_mocap += sim.poll_mocap()  # the socket keeps them for the next sample
+                sim.advance(dt)  # the last command holds
+                continue
         imu = sim.read_imu()
-        est = source.update(t + t_offset, imu, sim.poll_mocap())
+        mocap_frames = sim.poll_mocap()
+        if held_mocap:
+            mocap_frames, held_mocap = held_mocap + mocap_frames, []
+        est = source.update(t + t_offset, imu, mocap_frames)
         if on_tick is not None:
             on_tick(t, sim)
         alpha = sim.tilt_rad()

@@ -84,9 +84,16 @@ class MocapModel:
         self._pending: deque[tuple[float, PoseReading]] = deque()
         self.captured = 0
         self.dropped = 0
+        # scheduled faults (sim_backend.scenario): occluded until this time, a reported offset,
+        # a frozen (position, attitude)
+        self.occluded_until_s = -math.inf
+        self.offset_w_m: Vec3 = (0.0, 0.0, 0.0)
+        self.frozen: tuple[Vec3, Quat] | None = None
 
     def maybe_capture(self, t_s: float, pos_w_m: Vec3, q_wb: Quat) -> None:
         """Capture a frame if one is due at ``t_s`` (call after every physics step)."""
+        if self.frozen is not None:  # a frozen tracker: the same pose, fresh noise
+            pos_w_m, q_wb = self.frozen
         while t_s + 1e-12 >= self.next_capture_s:
             self.next_capture_s += self.period_s
             self.captured += 1
@@ -101,6 +108,13 @@ class MocapModel:
                 ang = math.sqrt(rx * rx + ry * ry + rz * rz)
                 if ang > 0.0:
                     q = quat_mul(q_wb, quat_from_axis_angle((rx / ang, ry / ang, rz / ang), ang))
+            # the noise above is drawn for an occluded frame too: a dropout changes nothing else
+            if t_s < self.occluded_until_s:
+                self.dropped += 1
+                continue
+            o = self.offset_w_m
+            if o != (0.0, 0.0, 0.0):
+                p = (p[0] + o[0], p[1] + o[1], p[2] + o[2])
             self._pending.append((t_s + self.latency_s, PoseReading(t_s, p, q)))
 
     def poll(self, t_s: float) -> list[PoseReading]:

@@ -21,7 +21,16 @@ from first principles, not from the controller's allocation matrix:
 - gyroscopic effects of the spinning rotors: ``w x h`` in Euler's equation and the reaction
   ``-dh/dt`` to spinning up/down and to tilting (h_i = I_r 2 pi w_i s_i axis_i);
 - external forces: a tether pulling towards an anchor point and a 3-axis Ornstein-Uhlenbeck
-  force (slowly varying unmodelled aerodynamics, paper-notes);
+  force (slowly varying unmodelled aerodynamics, paper-notes), plus a scenario's scheduled
+  forces and torques (:class:`sim_backend.scenario.DisturbanceSchedule`, from
+  :meth:`start_scenario` on);
+- a scenario's plant (:class:`sim_backend.scenario.PlantOverrides`): ``params`` is then the
+  plant's (:func:`sim_backend.scenario.plant_params`: mass with the payload) and the overrides
+  add a full inertia, a centre-of-mass offset ``c`` (body), per-rotor c_f and c_tau scales,
+  propeller and arm misalignment and the rotor lag. With an offset the state integrated is the
+  centre of mass's (Newton about it, Euler about it with the rotor moments taken about it);
+  :meth:`state` and the MoCap report O_B (``p_B = p_C - R c``), and the accelerometer reads the
+  specific force of the centre of mass (its lever-arm terms vanish in hover);
 - ground contact: the vehicle starts at rest on its landing gear (``ground_height_m`` is the
   height of O_B when resting). It stays put while the net vertical force pushes it down, lifts
   off when the rotors carry it, and on touchdown it comes to rest level (inelastic contact; the
@@ -45,6 +54,7 @@ from controller.model import CARDAN_JOINTS_PER_PROPELLER
 from controller.params import VehicleParams
 from controller.reference import IDENTITY_Q, Quat, Vec3, VehicleState, quat_to_rot
 from sim_backend.disturbances import DisturbancePreset
+from sim_backend.scenario import DisturbanceEvent, DisturbanceSchedule, PlantOverrides
 from sim_backend.sensors import ImuModel, MocapModel, NormalStream
 from sim_backend.vehicle import ImuReading, PoseReading
 
@@ -77,8 +87,10 @@ class FastHexSimulator:
 
     def __init__(self, params: VehicleParams, preset: DisturbancePreset, *, seed: int = 0,
                  start_pos_w_m: Vec3 = (0.0, 0.0, 0.1), start_q_wb: Quat = IDENTITY_Q,
-                 ground_height_m: float | None = None) -> None:
+                 ground_height_m: float | None = None, plant: PlantOverrides | None = None,
+                 disturbances: Sequence[DisturbanceEvent] = ()) -> None:
         self.params = params
+        self.plant = plant if plant is not None else PlantOverrides()
         self.preset = preset
         self.seed = seed
         rng = np.random.default_rng(seed)
@@ -88,24 +100,41 @@ class FastHexSimulator:
 
         self._m = params.mass_kg
         self._g = params.gravity_m_s2
-        self._j = params.inertia_diag_kg_m2
+        plant = self.plant
+        j = plant.inertia_matrix(params.inertia_diag_kg_m2)
+        self._j = (float(j[0, 0]), float(j[1, 1]), float(j[2, 2]))
+        # a full inertia takes the slower matrix path of Euler's equation
+        off_diagonal = float(abs(j[0, 1]) + abs(j[0, 2]) + abs(j[1, 2]))
+        self._j_full = [float(v) for v in j.ravel()] if off_diagonal > 0.0 else None
+        self._j_inv = [float(v) for v in np.linalg.inv(j).ravel()]
+        self._com = plant.com_offset_b_m
+        self._has_com = self._com != (0.0, 0.0, 0.0)
         l_m = params.geometry.arm_length_m
-        self._yaw = [i * math.pi / 3.0 for i in range(N_ROTORS)]
+        self._yaw = [i * math.pi / 3.0 + math.radians(plant.arm_yaw_error_deg[i])
+                     for i in range(N_ROTORS)]
         self._pos = [(l_m * math.cos(y), l_m * math.sin(y), 0.0) for y in self._yaw]
         ccw = 1.0 if params.rotors.first_rotor_ccw else -1.0
         #: +1 where the propeller spins about +axis; the drag torque opposes the spin
         self._spin_sign = [ccw * (1.0 if i % 2 == 0 else -1.0) for i in range(N_ROTORS)]
-        self._c_tau = params.rotors.drag_coeff_m
+        self._c_tau = [params.rotors.drag_coeff_m * s for s in plant.drag_coeff_scale]
         spread = preset.thrust_coeff_spread
         c_f = params.rotors.thrust_coeff_n_per_hz2
+        # the random draws do not depend on the plant: one seed, the same noise for any plant
         #: actual per-rotor thrust coefficients (N/Hz^2)
-        self.c_f_actual = [float(c_f * (1.0 + spread * u))
-                           for u in rng.uniform(-1.0, 1.0, N_ROTORS)]
+        self.c_f_actual = [float(c_f * (1.0 + spread * u)) * s
+                           for u, s in zip(rng.uniform(-1.0, 1.0, N_ROTORS),
+                                           plant.thrust_coeff_scale, strict=True)]
         #: fixed misalignment of each propeller about its arm's y axis (rad)
-        self.misalignment_rad = [float(b) for b in
-                                 rng.normal(0.0, math.radians(preset.misalignment_deg), N_ROTORS)]
+        self.misalignment_rad = [
+            float(b) + math.radians(extra) for b, extra in
+            zip(rng.normal(0.0, math.radians(preset.misalignment_deg), N_ROTORS),
+                plant.propeller_misalignment_deg, strict=True)]
         self._i_r = preset.rotor_inertia_kg_m2
-        self._tau_rotor = preset.rotor_time_constant_s
+        self._tau_rotor = (preset.rotor_time_constant_s if plant.rotor_time_constant_s is None
+                           else plant.rotor_time_constant_s)
+        #: the scenario's scheduled forces and torques (they act from start_scenario on)
+        self.schedule = DisturbanceSchedule(disturbances)
+        self._tilt_frozen = False
         self._worm = params.tilt.worm_ratio
         self._cos_bend = math.cos(math.radians(params.tilt.cardan_bend_deg))
         self._cardan = preset.cardan_chain
@@ -121,7 +150,10 @@ class FastHexSimulator:
         self._t = 0.0
         self.ground_height_m = start_pos_w_m[2] if ground_height_m is None else ground_height_m
         q0 = _yaw_only(start_q_wb)
-        self._x = [start_pos_w_m[0], start_pos_w_m[1], self.ground_height_m, 0.0, 0.0, 0.0,
+        # the state is the centre of mass's: O_B + R c
+        rc = self._r_com(q0)
+        self._x = [start_pos_w_m[0] + rc[0], start_pos_w_m[1] + rc[1],
+                   self.ground_height_m + rc[2], 0.0, 0.0, 0.0,
                    q0[0], q0[1], q0[2], q0[3], 0.0, 0.0, 0.0]
         self.landed = True
         #: vertical speeds (m/s, positive down) at each touchdown
@@ -134,6 +166,26 @@ class FastHexSimulator:
         self._fb: Vec3 = (0.0, 0.0, 0.0)
         self._fext: Vec3 = (0.0, 0.0, 0.0)
         self._set_tilts(self._servo)
+
+    def _r_com(self, q: Quat) -> Vec3:
+        """R c: from O_B to the centre of mass, world frame."""
+        if not self._has_com:
+            return (0.0, 0.0, 0.0)
+        r, c = quat_to_rot(q), self._com
+        return (r[0] * c[0] + r[1] * c[1] + r[2] * c[2],
+                r[3] * c[0] + r[4] * c[1] + r[5] * c[2],
+                r[6] * c[0] + r[7] * c[1] + r[8] * c[2])
+
+    def _origin_w_m(self) -> Vec3:
+        """Position of O_B (world): the centre of mass less R c."""
+        x = self._x
+        rc = self._r_com((x[6], x[7], x[8], x[9]))
+        return (x[0] - rc[0], x[1] - rc[1], x[2] - rc[2])
+
+    def start_scenario(self, t0_s: float | None = None) -> None:
+        """Mission time 0 of the scenario's schedule is simulated time ``t0_s`` (default:
+        now)."""
+        self.schedule.t0_s = self._t if t0_s is None else t0_s
 
     # -- geometry of the propellers ---------------------------------------------------------
     def _set_tilts(self, servo_rad: float) -> list[float]:
@@ -151,8 +203,11 @@ class FastHexSimulator:
             ax = (cy * lx - sy * ly, sy * lx + cy * ly, lz)
             axes.append(ax)
             daxes.append((cy * dx - sy * dy, sy * dx + cy * dy, dz))
-            px, py, pz = self._pos[i]
-            d = -self._spin_sign[i] * self._c_tau
+            # the rotor moments act about the centre of mass
+            c = self._com
+            px, py, pz = (self._pos[i][0] - c[0], self._pos[i][1] - c[1],
+                          self._pos[i][2] - c[2])
+            d = -self._spin_sign[i] * self._c_tau[i]
             moments.append((py * ax[2] - pz * ax[1] + d * ax[0],
                             pz * ax[0] - px * ax[2] + d * ax[1],
                             px * ax[1] - py * ax[0] + d * ax[2]))
@@ -217,18 +272,29 @@ class FastHexSimulator:
                     tx -= kt * da[0]
                     ty -= kt * da[1]
                     tz -= kt * da[2]
+
+        x = self._x
+        ex = ey = ez = 0.0
+        wrench = self.schedule.wrench(self._t) if self.schedule.t0_s is not None else None
+        if wrench is not None:  # the scenario's: world force, body force, torques (at C)
+            (ex, ey, ez), f_b, t_w, t_b = wrench
+            fx, fy, fz = fx + f_b[0], fy + f_b[1], fz + f_b[2]
+            tx, ty, tz = tx + t_b[0], ty + t_b[1], tz + t_b[2]
+            if t_w != (0.0, 0.0, 0.0):
+                r = quat_to_rot((x[6], x[7], x[8], x[9]))  # body torque = R^T world torque
+                tx += r[0] * t_w[0] + r[3] * t_w[1] + r[6] * t_w[2]
+                ty += r[1] * t_w[0] + r[4] * t_w[1] + r[7] * t_w[2]
+                tz += r[2] * t_w[0] + r[5] * t_w[1] + r[8] * t_w[2]
         self._fb = (fx, fy, fz)
 
         # external forces (world)
-        x = self._x
-        ex = ey = ez = 0.0
         if self._tether_n > 0.0:
             dx, dy, dz = (self._anchor[0] - x[0], self._anchor[1] - x[1],
                           self._anchor[2] - x[2])
             n = math.sqrt(dx * dx + dy * dy + dz * dz)
             if n > 1e-9:
-                ex, ey, ez = (self._tether_n * dx / n, self._tether_n * dy / n,
-                              self._tether_n * dz / n)
+                ex, ey, ez = (ex + self._tether_n * dx / n, ey + self._tether_n * dy / n,
+                              ez + self._tether_n * dz / n)
         if self._ou_rms > 0.0:
             phi = math.exp(-h / self._ou_tau)
             s = self._ou_rms * math.sqrt(1.0 - phi * phi)
@@ -249,6 +315,7 @@ class FastHexSimulator:
             self.landed = False
 
         jx, jy, jz = self._j
+        j_full, ji = self._j_full, self._j_inv
         inv_m = 1.0 / m
 
         def deriv(s: list[float]) -> list[float]:
@@ -264,15 +331,28 @@ class FastHexSimulator:
                    + ey) * inv_m
             az_ = (2.0 * (xz - wqy) * fx + 2.0 * (yz + wqx) * fy + (1.0 - 2.0 * (xx + yy)) * fz
                    + ez) * inv_m - g
-            lx, ly, lz = jx * wx + hx, jy * wy + hy, jz * wz + hz
+            if j_full is None:
+                lx, ly, lz = jx * wx + hx, jy * wy + hy, jz * wz + hz
+                dwx = (tx - (wy * lz - wz * ly)) / jx
+                dwy = (ty - (wz * lx - wx * lz)) / jy
+                dwz = (tz - (wx * ly - wy * lx)) / jz
+            else:  # J w' = tau - w x (J w + h), J full
+                j = j_full
+                lx = j[0] * wx + j[1] * wy + j[2] * wz + hx
+                ly = j[3] * wx + j[4] * wy + j[5] * wz + hy
+                lz = j[6] * wx + j[7] * wy + j[8] * wz + hz
+                rx_ = tx - (wy * lz - wz * ly)
+                ry_ = ty - (wz * lx - wx * lz)
+                rz_ = tz - (wx * ly - wy * lx)
+                dwx = ji[0] * rx_ + ji[1] * ry_ + ji[2] * rz_
+                dwy = ji[3] * rx_ + ji[4] * ry_ + ji[5] * rz_
+                dwz = ji[6] * rx_ + ji[7] * ry_ + ji[8] * rz_
             return [s[3], s[4], s[5], ax_, ay_, az_,
                     0.5 * (-qx * wx - qy * wy - qz * wz),
                     0.5 * (qw * wx + qy * wz - qz * wy),
                     0.5 * (qw * wy - qx * wz + qz * wx),
                     0.5 * (qw * wz + qx * wy - qy * wx),
-                    (tx - (wy * lz - wz * ly)) / jx,
-                    (ty - (wz * lx - wx * lz)) / jy,
-                    (tz - (wx * ly - wy * lx)) / jz]
+                    dwx, dwy, dwz]
 
         hh = 0.5 * h
         k1 = deriv(x)
@@ -287,11 +367,13 @@ class FastHexSimulator:
         x[7] *= qn
         x[8] *= qn
         x[9] *= qn
-        if x[2] < self.ground_height_m:
+        rc = self._r_com((x[6], x[7], x[8], x[9]))
+        if x[2] - rc[2] < self.ground_height_m:  # O_B below its resting height
             self.touchdown_speeds_m_s.append(-x[5])
             q = _yaw_only((x[6], x[7], x[8], x[9]))
-            x = [x[0], x[1], self.ground_height_m, 0.0, 0.0, 0.0, q[0], q[1], q[2], q[3],
-                 0.0, 0.0, 0.0]
+            rc0 = self._r_com(q)
+            x = [x[0] - rc[0] + rc0[0], x[1] - rc[1] + rc0[1], self.ground_height_m + rc0[2],
+                 0.0, 0.0, 0.0, q[0], q[1], q[2], q[3], 0.0, 0.0, 0.0]
             self.landed = True
         self._x = x
         self._advance_time(h)
@@ -299,14 +381,27 @@ class FastHexSimulator:
     def _advance_time(self, h: float) -> None:
         self._t += h
         x = self._x
-        self.mocap.maybe_capture(self._t, (x[0], x[1], x[2]), (x[6], x[7], x[8], x[9]))
+        self.mocap.maybe_capture(self._t, self._origin_w_m(), (x[6], x[7], x[8], x[9]))
 
     # -- fast in-process API -----------------------------------------------------------------
     def state(self) -> VehicleState:
-        """The true state."""
+        """The true state of O_B (with a centre-of-mass offset: moved from the centre of
+        mass's, v_B = v_C - R (w x c))."""
         x = self._x
-        return VehicleState((x[0], x[1], x[2]), (x[3], x[4], x[5]), (x[6], x[7], x[8], x[9]),
-                            (x[10], x[11], x[12]))
+        if not self._has_com:
+            return VehicleState((x[0], x[1], x[2]), (x[3], x[4], x[5]),
+                                (x[6], x[7], x[8], x[9]), (x[10], x[11], x[12]))
+        q: Quat = (x[6], x[7], x[8], x[9])
+        r, c = quat_to_rot(q), self._com
+        wx, wy, wz = x[10], x[11], x[12]
+        wc = (wy * c[2] - wz * c[1], wz * c[0] - wx * c[2], wx * c[1] - wy * c[0])
+        rc = self._r_com(q)
+        return VehicleState(
+            (x[0] - rc[0], x[1] - rc[1], x[2] - rc[2]),
+            (x[3] - (r[0] * wc[0] + r[1] * wc[1] + r[2] * wc[2]),
+             x[4] - (r[3] * wc[0] + r[4] * wc[1] + r[5] * wc[2]),
+             x[5] - (r[6] * wc[0] + r[7] * wc[1] + r[8] * wc[2])),
+            q, (wx, wy, wz))
 
     def specific_force_b(self) -> Vec3:
         """What an ideal accelerometer reads (m/s^2, body): (F_b + R^T F_ext) / m, or the
@@ -357,11 +452,17 @@ class FastHexSimulator:
         x = self._x
         return self.imu.sample(self._t, (x[10], x[11], x[12]), self.specific_force_b())
 
-    def scale_rotor_thrust(self, scale: float) -> None:
-        """Fault hook: every rotor's thrust coefficient times ``scale`` from now on (0: the
-        propellers are off or the rotors produce no thrust; 0.5: a weak battery or wrong props).
-        The drag torques follow the rotor speeds as before."""
-        self.c_f_actual = [c * scale for c in self.c_f_actual]
+    def scale_rotor_thrust(self, scale: float, rotor: int | None = None) -> None:
+        """Fault hook: every rotor's thrust coefficient, or only rotor ``rotor`` (1..6), times
+        ``scale`` from now on (0: the propellers are off or the rotors produce no thrust; 0.5:
+        a weak battery or wrong props). The drag torques follow the rotor speeds as before."""
+        self.c_f_actual = [c * scale if rotor is None or i == rotor - 1 else c
+                           for i, c in enumerate(self.c_f_actual)]
+
+    def freeze_tilt(self) -> None:
+        """Fault hook (a silent servo): tilt commands are ignored from now on; the drive still
+        finishes the move it was last told to make, as the servo does."""
+        self._tilt_frozen = True
 
     def kick_body_rate(self, d_omega_b_rad_s: Vec3) -> None:
         """Fault hook: an impulsive torque (a blow to the airframe) changes the body rate by
@@ -374,6 +475,8 @@ class FastHexSimulator:
         x[12] += d_omega_b_rad_s[2]
 
     def command_tilt_rad(self, tilt_rad: float) -> None:
+        if self._tilt_frozen:
+            return
         self._servo_goal = min(max(float(tilt_rad), 0.0), self._tilt_max)
 
     def tilt_rad(self) -> float:
@@ -381,7 +484,7 @@ class FastHexSimulator:
 
     def true_pose(self) -> PoseReading:
         x = self._x
-        return PoseReading(self._t, (x[0], x[1], x[2]), (x[6], x[7], x[8], x[9]))
+        return PoseReading(self._t, self._origin_w_m(), (x[6], x[7], x[8], x[9]))
 
     def battery_voltage_v(self) -> float:
         return 16.4 - 0.02 * sum(self.motor_currents_a())

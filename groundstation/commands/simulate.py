@@ -7,7 +7,12 @@ The controller is fed the simulator's true state plus the preset's estimation no
 ``_frac``) and optionally writes the flight record (``--log``, format in
 :mod:`groundstation.record`).
 
-JSON keys: ``mission``, ``vehicle``, ``preset``, ``seed``, ``estimator``, ``sim_time_s``,
+``--scenario NAME|FILE`` flies a scenario (:mod:`sim_backend.scenario`): the simulator's plant
+overrides, scheduled disturbances and faults, timed in mission seconds; the same file an emulated
+session names in ``backend.scenario``.
+
+JSON keys: ``mission``, ``vehicle``, ``preset``, ``scenario`` (``null``: none), ``seed``,
+``estimator``, ``sim_time_s``,
 ``wall_time_s``, ``sim_s_per_wall_s`` (simulated seconds per wall second), ``touchdowns``,
 ``max_touchdown_speed_m_s``, and for each phase ``all`` / ``udt`` / ``mdt``:
 ``<phase>_ticks``, ``<phase>_duration_s``, ``<phase>_pos_err_mean_mm``,
@@ -54,6 +59,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--preset", default="paper-calibrated",
                         help="disturbance preset name or YAML file (ideal, paper-calibrated)")
+    parser.add_argument("--scenario", default=None, metavar="NAME|FILE",
+                        help="scenario: plant overrides, scheduled disturbances and faults "
+                        "(times in mission seconds)")
     parser.add_argument("--duration", type=float, default=None, metavar="S",
                         help="stop after S simulated seconds (default: the whole mission)")
     parser.add_argument("--tilt-deg", type=float, default=None, metavar="DEG",
@@ -80,6 +88,7 @@ def simulate(args: argparse.Namespace) -> dict[str, Any]:
     from groundstation.configs import (
         load_disturbances,
         load_mission,
+        load_scenario,
         load_vehicle,
         preflight_warnings,
     )
@@ -90,6 +99,10 @@ def simulate(args: argparse.Namespace) -> dict[str, Any]:
     params = load_vehicle(args.vehicle)
     mission = Mission(load_mission(args.mission, vehicle=params))  # checked against it
     preset = load_disturbances(args.preset)
+    scenario = None
+    if getattr(args, "scenario", None):
+        scenario = load_scenario(args.scenario, vehicle=params,
+                                 mission_duration_s=mission.duration_s)
     if args.duration is not None and args.duration <= 0.0:
         raise UserError(f"--duration must be positive, got {args.duration}")
     limits = _crash_limits(args)
@@ -106,16 +119,19 @@ def simulate(args: argparse.Namespace) -> dict[str, Any]:
         source, preroll_s = UkfStateSource(params.mass_kg, params.gravity_m_s2), 1.0
     writer = RecordWriter(args.log, {"mission": mission.name, "vehicle": params.name,
                                      "preset": preset.name, "seed": args.seed,
-                                     "estimator": args.estimator})
+                                     "estimator": args.estimator,
+                                     "scenario": None if scenario is None else scenario.name})
     try:
         result = fly_mission(params, mission, preset, seed=args.seed, sink=writer,
                              duration_s=args.duration, tilt_override_rad=tilt,
-                             state_source=source, preroll_s=preroll_s, crash_limits=limits)
+                             state_source=source, preroll_s=preroll_s, crash_limits=limits,
+                             scenario=scenario)
     finally:
         record = writer.close()
     out: dict[str, Any] = {
         "mission": mission.name, "vehicle": params.name, "preset": preset.name,
-        "seed": args.seed, "estimator": args.estimator, "sim_time_s": result.sim_time_s,
+        "scenario": None if scenario is None else scenario.name, "seed": args.seed,
+        "estimator": args.estimator, "sim_time_s": result.sim_time_s,
         "wall_time_s": result.wall_time_s, "sim_s_per_wall_s": result.realtime_factor,
         "touchdowns": len(result.touchdown_speeds_m_s),
         "max_touchdown_speed_m_s": max(result.touchdown_speeds_m_s, default=0.0),
@@ -169,8 +185,10 @@ _ROWS = (
 
 
 def format_table(summary: dict[str, Any]) -> str:
+    scenario = summary.get("scenario")
     lines = [f"{summary['mission']} on {summary['vehicle']}, preset {summary['preset']}, "
-             f"seed {summary['seed']}, state from {summary['estimator']}",
+             + (f"scenario {scenario}, " if scenario else "")
+             + f"seed {summary['seed']}, state from {summary['estimator']}",
              f"{'':28s}{'all':>12s}{'UDT':>12s}{'MDT':>12s}"]
     for label, key, fmt in _ROWS:
         cells = []

@@ -47,7 +47,7 @@ def test_that_every_shipped_session_loads() -> None:
     ("  seed: 1\n", "  seed: 1\n  flight_ctrl_uri: /dev/ttyUSB0\n", "flight_ctrl_uri",
      "backend.flight_ctrl_uri: unknown key; expected one of: board_clock_ppm, clock, "
      "corrupt_prob, disturbances, faults, imu_rate_hz, kind, mocap, mocap_clock_offset_s, "
-     "mocap_clock_ppm, seed"),
+     "mocap_clock_ppm, scenario, seed"),
     ("  seed: 1\n", "  seed: 1\n  mocap: vicon\n", "mocap",
      "backend.mocap: expected one of 'natnet', 'qtm'; got 'vicon'"),
 ])
