@@ -74,7 +74,10 @@ TARGETS = (
             "test_that_body_tilt_just_over_its_limit_lands_at_the_first_tick_over_it")),
     Target("loop", "groundstation/loop.py", ("FlightLoop.run",),
            ("tests/integration/test_failsafes.py",
-            "tests/integration/test_takeoff_on_estimate.py"),
+            "tests/integration/test_takeoff_on_estimate.py",
+            # the realtime branches (pose age on the host clock, RATE_LOW from the driver)
+            "tests/integration/test_clock_sync.py::"
+            "test_the_preflight_reports_the_board_and_mocap_clocks"),
            mentions=("link_ok", "battery_v", "estimator_ok", "imu_rate_fraction", "rate_seq0",
                      "rate_n0", "last_pose_t_s", "pose_age_s", "passed", "timed_out",
                      "n_transitions")),

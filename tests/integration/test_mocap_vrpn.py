@@ -10,6 +10,7 @@ that knows nothing but the classic handshake; ``motioncapture`` checks the emula
 from __future__ import annotations
 
 import math
+import re
 import socket
 import struct
 import threading
@@ -222,6 +223,22 @@ def test_that_our_client_reads_a_server_that_only_speaks_the_classic_handshake()
     assert s is not None and s.valid and s.body_name == "Hex"
     assert s.pos_w_m == pytest.approx((0.5, -0.25, 1.5), abs=1e-12)
     assert quat_angle_rad(s.q_wb, (math.cos(0.3), 0.0, 0.0, math.sin(0.3))) < 1e-9
+
+
+def test_that_mocap_watch_reads_a_classic_only_server_at_its_rate(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    # the operator's command against a server with no TCP listener: the classic request, the
+    # call-back, the pose in the world frame, and the rate the server sends at (a report every
+    # 5 ms of wall time plus the send: at most 200 Hz; well above half of it on any host)
+    from groundstation.cli import main
+    with ClassicOnlyServer("Hex", (0.5, -0.25, 1.5), (0.0, 0.0, 0.0, 1.0)) as server:
+        rc = main(["mocap", "watch", f"vrpn://Hex@127.0.0.1:{server.port}?handshake=classic",
+                   "--frames", "120", "--interval", "0.1"])
+    assert rc == 0 and len(server.requests) == 1
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert "Hex: p [ +0.500  -0.250  +1.500] m" in last, last
+    rate = re.search(r"([0-9.]+) Hz", last)
+    assert rate is not None and 100.0 <= float(rate.group(1)) <= 201.0, last
 
 
 def test_that_the_motioncapture_vrpn_client_reads_our_tracker_server() -> None:
