@@ -68,6 +68,10 @@ LONG_SHARED_MODULES = (
     "integration/test_dashboard.py",
     "integration/test_takeoff_on_estimate.py",
     "integration/test_fly_1khz.py",
+    "integration/test_scenario_fly_vs_simulate.py",
+    "integration/test_fly_console.py",
+    "integration/test_mocap_qtm.py",
+    "integration/test_simulate_mission_kinds.py",
 )
 
 
