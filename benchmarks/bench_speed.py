@@ -223,6 +223,12 @@ def main() -> int:
         "physics {:.0f} + controller {:.0f} us/tick".format(parts["physics"],
                                                             parts["controller"]),
         "", ">= 60x", sim_truth >= 60.0)
+    for name, out in (("lockstep 500 Hz", lock), *((f"realtime {r:.0f} Hz", o)
+                                                   for r, o in rt.items())):
+        first = out.result.first_ticks_ms
+        print(f"{name}: first tick after arming {first.get('first_after_arming', 0.0):.3f} ms, "
+              f"controller's first step {first.get('first_control', 0.0):.3f} ms, against "
+              f"compute p99 {out.result.timing.compute_p99_ms:.3f} ms")
     if rt:
         a, b = rt[500.0].result, rt[1000.0].result
         ta, tb = a.timing, b.timing
