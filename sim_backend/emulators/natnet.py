@@ -36,7 +36,6 @@ import logging
 import socket
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
@@ -55,6 +54,7 @@ from drivers.mocap.frames import (
     quat_mul,
     quat_rotate,
 )
+from sim_backend.emulators.schedule import CaptureSchedule
 from sim_backend.vehicle import EmulatedVehicle
 
 log = logging.getLogger(__name__)
@@ -158,7 +158,6 @@ class NatNetServer:
         self._version = natnet.parse_version(cfg.version)
         self._transform = FrameTransform(cfg.frames)
         self._rng = np.random.default_rng(cfg.seed)
-        self._period_s = 1.0 / cfg.rate_hz
         self.counters = EmulatorCounters()
         self._clients: dict[tuple[str, int], float] = {}
         self._clients_lock = threading.Lock()
@@ -166,9 +165,8 @@ class NatNetServer:
         self._mcast: socket.socket | None = None
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._pending: deque[tuple[float, bytes]] = deque()
         self._stream_lock = threading.Lock()
-        self._next_capture_s: float | None = None
+        self._schedule: CaptureSchedule[bytes] = CaptureSchedule(1.0 / cfg.rate_hz)
         self._frame_number = 0
         self._occluded_left = 0
         self._stale: tuple[Vec3, tuple[float, float, float, float]] | None = None
@@ -439,21 +437,9 @@ class NatNetServer:
         due between two calls is the vehicle's at ``now_s``, and its mid-exposure stamp is
         ``now_s``: the stamp always matches the pose in the packet.
         """
-        captured = 0
         with self._stream_lock:
-            if self._next_capture_s is None:
-                self._next_capture_s = now_s
-            if now_s - self._next_capture_s > 0.25:  # starved: resynchronise, do not burst
-                self._next_capture_s = now_s
-            while self._next_capture_s <= now_s + 1e-12:
-                packet = self._capture(now_s)
-                captured += 1
-                if packet is not None:
-                    self._pending.append((now_s + self.config.latency_s, packet))
-                self._next_capture_s += self._period_s
-            due = []
-            while self._pending and self._pending[0][0] <= now_s + 1e-12:
-                due.append(self._pending.popleft()[1])
+            captured, due = self._schedule.due(now_s, self.config.latency_s,
+                                               lambda: self._capture(now_s))
         for packet in due:
             self._send_frame(packet)
         return captured
@@ -461,10 +447,7 @@ class NatNetServer:
     def next_event_s(self) -> float:
         """Server time of the next capture or transmission."""
         with self._stream_lock:
-            nxt = self._next_capture_s if self._next_capture_s is not None else 0.0
-            if self._pending:
-                nxt = min(nxt, self._pending[0][0])
-            return nxt
+            return self._schedule.next_event_s()
 
     def _stream_realtime(self) -> None:
         while not self._stop.is_set():

@@ -38,7 +38,6 @@ import selectors
 import socket
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -55,6 +54,7 @@ from drivers.mocap.frames import (
     quat_from_axis_angle,
     quat_mul,
 )
+from sim_backend.emulators.schedule import CaptureSchedule
 from sim_backend.vehicle import EmulatedVehicle
 
 log = logging.getLogger(__name__)
@@ -151,7 +151,6 @@ class QtmServer:
         self._wall = wall_clock
         self._transform = FrameTransform(cfg.frames)
         self._rng = np.random.default_rng(cfg.seed)
-        self._period_s = 1.0 / cfg.rate_hz
         self.counters = QtmEmulatorCounters()
         self._tcp: socket.socket | None = None
         self._udp: socket.socket | None = None
@@ -161,8 +160,8 @@ class QtmServer:
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._stream_lock = threading.Lock()
-        self._pending: deque[tuple[float, int, int, tuple[qtm.SixDofBody, ...]]] = deque()
-        self._next_capture_s: float | None = None
+        self._schedule: CaptureSchedule[tuple[int, int, tuple[qtm.SixDofBody, ...]]] = \
+            CaptureSchedule(1.0 / cfg.rate_hz)
         self._frame_number = 0
         self._occluded_left = 0
         self._last: tuple[int, int, tuple[qtm.SixDofBody, ...]] | None = None
@@ -507,31 +506,20 @@ class QtmServer:
         """Capture every frame due by ``now_s`` (emulator time, s) and send those whose send
         time (capture + latency) has come. Returns the number of frames captured. In lockstep a
         frame due between two calls carries the vehicle's pose and timestamp at ``now_s``."""
-        captured = 0
+        def capture() -> tuple[int, int, tuple[qtm.SixDofBody, ...]]:
+            bodies = self._capture()
+            self._last = (self.server_timestamp_us(now_s), self._frame_number, bodies)
+            return self._last
+
         with self._stream_lock:
-            if self._next_capture_s is None or now_s - self._next_capture_s > 0.25:
-                self._next_capture_s = now_s  # first call, or starved: do not burst
-            while self._next_capture_s <= now_s + 1e-12:
-                bodies = self._capture()
-                ts = self.server_timestamp_us(now_s)
-                self._last = (ts, self._frame_number, bodies)
-                self._pending.append((now_s + self.config.latency_s, ts, self._frame_number,
-                                      bodies))
-                captured += 1
-                self._next_capture_s += self._period_s
-            due = []
-            while self._pending and self._pending[0][0] <= now_s + 1e-12:
-                due.append(self._pending.popleft()[1:])
+            captured, due = self._schedule.due(now_s, self.config.latency_s, capture)
         for ts, number, bodies in due:
             self._send_frame(ts, number, bodies)
         return captured
 
     def next_event_s(self) -> float:
         with self._stream_lock:
-            nxt = self._next_capture_s if self._next_capture_s is not None else 0.0
-            if self._pending:
-                nxt = min(nxt, self._pending[0][0])
-            return nxt
+            return self._schedule.next_event_s()
 
     def _stream_realtime(self) -> None:
         while not self._stop.is_set():

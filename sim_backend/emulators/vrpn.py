@@ -20,12 +20,12 @@ configurable. Vehicle calls are made under the shared ``lock``.
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import selectors
 import socket
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
@@ -35,6 +35,7 @@ import numpy as np
 from config.schema import ConfigValueError, spec
 from drivers.mocap import vrpn
 from drivers.mocap.frames import FrameConfig, FrameTransform, quat_from_axis_angle, quat_mul
+from sim_backend.emulators.schedule import CaptureSchedule
 from sim_backend.vehicle import EmulatedVehicle
 
 log = logging.getLogger(__name__)
@@ -333,24 +334,17 @@ class VrpnServer:
                 + (wall_s - self._clock0_s) * cfg.server_clock_drift_ppm * 1e-6)
 
     def _stream(self) -> None:
-        period = 1.0 / self.config.rate_hz
-        pending: deque[tuple[float, bytes]] = deque()
-        next_capture = self._wall()
+        schedule: CaptureSchedule[bytes] = CaptureSchedule(1.0 / self.config.rate_hz)
         while not self._stop.is_set():
             now = self._wall()
-            if now - next_capture > 0.25:
-                next_capture = now
-            while next_capture <= now:
-                msg = self._report(self.server_time_s(now))
-                if msg is not None:
-                    pending.append((now + self.config.latency_s, msg))
-                next_capture += period
-            while pending and pending[0][0] <= now:
-                msg = pending.popleft()[1]
+            stamp_s = self.server_time_s(now)
+            _, due = schedule.due(now, self.config.latency_s,
+                                  functools.partial(self._report, stamp_s))
+            for msg in due:
                 with self._conns_lock:
                     targets = [c for c in self._conns if c.ready]
                 for c in targets:
                     if self._send(c, msg):
                         self.reports_sent += 1
-            wake = min(next_capture, pending[0][0]) if pending else next_capture
+            wake = schedule.next_event_s()
             self._stop.wait(max(0.0, min(wake - self._wall(), 0.05)))
