@@ -229,7 +229,8 @@ def test_that_mocap_watch_reads_a_classic_only_server_at_its_rate(
         capsys: pytest.CaptureFixture[str]) -> None:
     # the operator's command against a server with no TCP listener: the classic request, the
     # call-back, the pose in the world frame, and the rate the server sends at (a report every
-    # 5 ms of wall time plus the send: at most 200 Hz; well above half of it on any host)
+    # 5 ms of wall time plus the send: 200 Hz at most, well above half of it on any host; the
+    # 1 s rate window may hold a few more when TCP delivers reports in bursts: 203.5 Hz seen)
     from groundstation.cli import main
     with ClassicOnlyServer("Hex", (0.5, -0.25, 1.5), (0.0, 0.0, 0.0, 1.0)) as server:
         rc = main(["mocap", "watch", f"vrpn://Hex@127.0.0.1:{server.port}?handshake=classic",
@@ -238,7 +239,7 @@ def test_that_mocap_watch_reads_a_classic_only_server_at_its_rate(
     last = capsys.readouterr().out.strip().splitlines()[-1]
     assert "Hex: p [ +0.500  -0.250  +1.500] m" in last, last
     rate = re.search(r"([0-9.]+) Hz", last)
-    assert rate is not None and 100.0 <= float(rate.group(1)) <= 201.0, last
+    assert rate is not None and 100.0 <= float(rate.group(1)) <= 220.0, last
 
 
 def test_that_the_motioncapture_vrpn_client_reads_our_tracker_server() -> None:
