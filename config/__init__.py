@@ -1,5 +1,5 @@
 """The shipped YAML configuration (vehicles, missions, sessions, disturbance presets,
-scenarios) and how to find it.
+scenarios, campaigns) and how to find it.
 
 The YAML files live in this package as package data, so an installed ``fasthex`` finds them
 without a checkout. ``find_config("vehicles", "fasthex")`` resolves a name to the shipped file;
@@ -16,7 +16,7 @@ from config.schema import ConfigError
 
 __all__ = ["ConfigError", "available", "config_root", "find_config"]
 
-KINDS = ("vehicles", "missions", "sessions", "disturbances", "scenarios")
+KINDS = ("vehicles", "missions", "sessions", "disturbances", "scenarios", "campaigns")
 
 
 def config_root() -> Path:

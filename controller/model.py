@@ -211,6 +211,9 @@ class VehicleModel:
         return coeffs, float(np.max(np.abs(design @ coeffs - r)))
 
 
+_FITTED_BOUNDS: dict[tuple[object, ...], tuple[float, float, float]] = {}
+
+
 @dataclass(frozen=True)
 class LateralBound:
     """The controller's cylindric bound r_xy(alpha) (paper Sec. IV-C-1): the fitted polynomial,
@@ -223,10 +226,18 @@ class LateralBound:
     @classmethod
     def for_model(cls, model: VehicleModel, grid_step_deg: float = 0.5) -> LateralBound:
         p = model.params
-        grid = np.arange(0.0, p.tilt.max_tilt_deg + 1e-9, grid_step_deg)
-        coeffs, _ = model.fit_lateral_bound(grid)
-        return cls((float(coeffs[0]), float(coeffs[1]), float(coeffs[2])),
-                   p.controller.lateral_bound_scale, p.controller.lateral_bound_dead_zone_deg)
+        # the fit (71 linear programs, ~0.2 s) depends on the airframe, not on the gains: a
+        # campaign that varies gains fits it once per process
+        key = (p.mass_kg, p.gravity_m_s2, p.geometry, p.rotors, p.tilt, grid_step_deg)
+        coeffs = _FITTED_BOUNDS.get(key)
+        if coeffs is None:
+            grid = np.arange(0.0, p.tilt.max_tilt_deg + 1e-9, grid_step_deg)
+            fitted, _ = model.fit_lateral_bound(grid)
+            coeffs = (float(fitted[0]), float(fitted[1]), float(fitted[2]))
+            if len(_FITTED_BOUNDS) < 64:
+                _FITTED_BOUNDS[key] = coeffs
+        return cls(coeffs, p.controller.lateral_bound_scale,
+                   p.controller.lateral_bound_dead_zone_deg)
 
     def radius_n(self, alpha_rad: float) -> float:
         a = math.degrees(alpha_rad)

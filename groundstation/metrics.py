@@ -160,3 +160,76 @@ def rounded(key: str, value: object) -> object:
         return float(f"{value:.6g}")
     out = round(value, RESOLUTION_BY_UNIT[unit])
     return 0.0 if out == 0 else out  # no "-0.0"
+
+
+#: position error a disturbance must bring the vehicle back under ("back under 10 mm")
+RECOVERY_THRESHOLD_M = 0.010
+#: trailing mean over which the error is judged: the MoCap and estimation noise (paper-
+#: calibrated preset: about 5 mm mean, single ticks to 10 mm in a still hover) must not count
+#: as "not recovered"; 0.2 s is short against the loop's ~1.5 s settling, long against the noise
+RECOVERY_SMOOTHING_S = 0.2
+#: how long the smoothed error must stay under the threshold to count as recovered
+RECOVERY_HOLD_S = 0.5
+
+
+def disturbance_metrics(rows: np.ndarray, windows_s: list[tuple[float, float]], *,
+                        threshold_m: float = RECOVERY_THRESHOLD_M,
+                        smoothing_s: float = RECOVERY_SMOOTHING_S,
+                        hold_s: float = RECOVERY_HOLD_S) -> dict[str, float]:
+    """How each scheduled disturbance moved the vehicle and how fast it came back.
+
+    ``windows_s``: each event's (start, end) in mission seconds (the rows' ``t_s``; end
+    ``inf``: to the end of the flight), in the scenario's order. Event ``i`` is judged from its
+    start to its end or the next event's start, whichever comes first, on the position error
+    ``|p_B - p_r|`` of the measured ticks:
+
+    - ``dist<i>_peak_err_mm``: the largest error in that window;
+    - ``dist<i>_recovery_s``: from the start to the first tick after the peak from which the
+      error's trailing ``smoothing_s`` mean stays under ``threshold_m`` for ``hold_s``; NaN when
+      it never does in the window (``dist<i>_recovered`` 0), 0 when it never left;
+    - ``dist<i>_recovered``: 1 or 0.
+    """
+    out: dict[str, float] = {}
+    t = rows["t_s"].astype(float)
+    measured = rows["measured"].astype(bool)
+    err = np.linalg.norm(rows["pos_w_m"].astype(float) - rows["pos_ref_w_m"].astype(float),
+                         axis=1)
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.002
+    n_avg = max(1, round(smoothing_s / dt))
+    csum = np.concatenate([[0.0], np.cumsum(err)])
+    idx = np.arange(len(err))
+    lo = np.maximum(idx + 1 - n_avg, 0)
+    smooth = (csum[idx + 1] - csum[lo]) / (idx + 1 - lo)
+    n_hold = max(1, round(hold_s / dt))
+    order = sorted(range(len(windows_s)), key=lambda i: windows_s[i][0])
+    for rank, i in enumerate(order):
+        start = windows_s[i][0]
+        end = min(windows_s[i][1], windows_s[order[rank + 1]][0] if rank + 1 < len(order)
+                  else math.inf)
+        window = np.flatnonzero((t >= start) & (t < end) & measured)
+        key = f"dist{i}"
+        if window.size == 0:
+            out[f"{key}_peak_err_mm"] = math.nan
+            out[f"{key}_recovery_s"] = math.nan
+            out[f"{key}_recovered"] = 0.0
+            continue
+        w_err = err[window]
+        k_peak = int(np.argmax(w_err))
+        out[f"{key}_peak_err_mm"] = 1000.0 * float(w_err[k_peak])
+        if float(np.max(smooth[window])) < threshold_m:
+            out[f"{key}_recovery_s"], out[f"{key}_recovered"] = 0.0, 1.0
+            continue
+        above = smooth[window] >= threshold_m
+        # ticks from which the next n_hold (within the window) are all under the threshold
+        run_under = np.zeros(window.size, dtype=int)
+        count = 0
+        for j in range(window.size - 1, -1, -1):
+            count = 0 if above[j] else count + 1
+            run_under[j] = count
+        ok = np.flatnonzero((run_under >= n_hold) & (np.arange(window.size) >= k_peak))
+        if ok.size == 0:
+            out[f"{key}_recovery_s"], out[f"{key}_recovered"] = math.nan, 0.0
+        else:
+            out[f"{key}_recovery_s"] = float(t[window[ok[0]]] - start)
+            out[f"{key}_recovered"] = 1.0
+    return out

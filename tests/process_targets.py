@@ -35,3 +35,15 @@ def read_ring(name: str, n_cols: int, expected: int, out: Any) -> None:
             time.sleep(0.001)
     ring.close()
     out.put(np.concatenate(got) if got else np.empty((0, n_cols)))
+
+
+def run_or_die(spec: Any) -> dict[str, Any]:
+    """A campaign run that kills its worker process when its seed is 13 (a segfault, the OOM
+    killer), else the real run."""
+    import os
+
+    from groundstation.campaign import execute_run
+
+    if spec.seed == 13:
+        os._exit(9)
+    return execute_run(spec)

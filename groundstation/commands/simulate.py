@@ -20,6 +20,9 @@ JSON keys: ``mission``, ``vehicle``, ``preset``, ``scenario`` (``null``: none), 
 ``<phase>_rd_dev_mean_deg``, ``<phase>_rd_dev_max_deg``, ``<phase>_inner_err_mean_deg``,
 ``<phase>_spin_min_hz``, ``<phase>_spin_max_hz``, ``<phase>_spin_saturated_frac``,
 ``<phase>_internal_force_loss_mean_frac`` (1 - eta_f); ``all_spin_within_limits`` (1 or 0).
+With a scenario that schedules disturbances, for each (``i`` its place in the file)
+``dist<i>_peak_err_mm``, ``dist<i>_recovery_s`` (back under 10 mm; ``null`` when it never came
+back) and ``dist<i>_recovered`` (1 or 0), as :func:`groundstation.metrics.disturbance_metrics`.
 Counts (``*_ticks``, ``touchdowns``) and ``sim_s_per_wall_s`` carry their unit in the name.
 Phases as in :mod:`groundstation.metrics`.
 
@@ -92,9 +95,7 @@ def simulate(args: argparse.Namespace) -> dict[str, Any]:
         load_vehicle,
         preflight_warnings,
     )
-    from groundstation.metrics import flight_metrics
-    from groundstation.record import RecordWriter
-    from sim_backend.closed_loop import StateSource, UkfStateSource, fly_mission
+    from groundstation.simulation import simulate_flight
 
     params = load_vehicle(args.vehicle)
     mission = Mission(load_mission(args.mission, vehicle=params))  # checked against it
@@ -113,36 +114,9 @@ def simulate(args: argparse.Namespace) -> dict[str, Any]:
                         f"{params.name!r} ({lo_deg:g} .. {hi_deg:g} deg)")
     for line in preflight_warnings(mission, params, tilt_override_rad=tilt):
         print(line, file=sys.stderr)
-    source: StateSource | None = None
-    preroll_s = 0.0
-    if args.estimator == "ukf":
-        source, preroll_s = UkfStateSource(params.mass_kg, params.gravity_m_s2), 1.0
-    writer = RecordWriter(args.log, {"mission": mission.name, "vehicle": params.name,
-                                     "preset": preset.name, "seed": args.seed,
-                                     "estimator": args.estimator,
-                                     "scenario": None if scenario is None else scenario.name})
-    try:
-        result = fly_mission(params, mission, preset, seed=args.seed, sink=writer,
-                             duration_s=args.duration, tilt_override_rad=tilt,
-                             state_source=source, preroll_s=preroll_s, crash_limits=limits,
-                             scenario=scenario)
-    finally:
-        record = writer.close()
-    out: dict[str, Any] = {
-        "mission": mission.name, "vehicle": params.name, "preset": preset.name,
-        "scenario": None if scenario is None else scenario.name, "seed": args.seed,
-        "estimator": args.estimator, "sim_time_s": result.sim_time_s,
-        "wall_time_s": result.wall_time_s, "sim_s_per_wall_s": result.realtime_factor,
-        "touchdowns": len(result.touchdown_speeds_m_s),
-        "max_touchdown_speed_m_s": max(result.touchdown_speeds_m_s, default=0.0),
-        "verdict": "ok" if result.crash is None else "crash",
-        "crash_reason": None if result.crash is None else result.crash.reason,
-        "crash_kind": None if result.crash is None else result.crash.kind,
-        "crash_t_s": None if result.crash is None else result.crash.t_s,
-    }
-    out.update(flight_metrics(record.rows, min_spin_hz=params.rotors.min_spin_hz,
-                              max_spin_hz=params.rotors.max_spin_hz))
-    return out
+    return simulate_flight(params, mission, preset, seed=args.seed, scenario=scenario,
+                           estimator=args.estimator, duration_s=args.duration,
+                           tilt_override_rad=tilt, crash_limits=limits, log_path=args.log)
 
 
 def _crash_limits(args: argparse.Namespace) -> CrashLimits:
