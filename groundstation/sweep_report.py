@@ -29,9 +29,10 @@ Output, in the output directory (:func:`write_report` returns the paths):
 - ``index.html``: a static page with the summary and every figure (no script, no network).
 
 Metrics default to ``all_pos_err_mean_mm`` and every ``dist*_recovery_s`` that an ok run
-measured; any metric column of the metadata, and ``wall_time_s``, can be asked for. Only ok runs with a finite value enter the means. The aggregation functions
-(:func:`grid_means`, :func:`line_stats`, :func:`point_means`, :func:`verdict_counts`, ...) are
-pure and draw nothing; the ``plot_*`` functions draw them. Problems the user can fix (a missing
+measured; any metric column of the metadata, and ``wall_time_s``, can be asked for. Only ok
+runs with a finite value enter the means. The aggregation functions (:func:`grid_means`,
+:func:`line_stats`, :func:`point_means`, :func:`verdict_counts`, ...) are pure and draw
+nothing; the ``plot_*`` functions draw them. Problems the user can fix (a missing
 file, a file that is not a sweep table, an unknown metric, no parameters) raise
 :class:`ReportError`.
 """
