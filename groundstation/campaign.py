@@ -250,11 +250,16 @@ class Campaign:
     def _validate(self, texts: dict[str, str | None], options: dict[str, Any],
                   point: dict[str, Any]) -> str | None:
         """The config error of a run, as one line naming the point (None: it flies)."""
+        labels = {ns: str(self.base_texts[key][1]) for ns, key in
+                  (("vehicle", "vehicle"), ("mission", "mission"), ("preset", "preset"))}
+        where = ", ".join(f"{k}={_short(v)}" for k, v in point.items()) or "the base configs"
         try:
             build_configs(texts, options, str(self.base_texts["mission"][1].parent.resolve()),
-                          labels={})
-        except (ConfigError, ValueError) as exc:
-            where = ", ".join(f"{k}={_short(v)}" for k, v in point.items()) or "the base configs"
+                          labels=labels)
+        except ConfigError as exc:  # the line is of the varied text, not of the file: left out
+            key = f"{exc.key}: " if exc.key else ""
+            return f"{where}: {exc.file}: {key}{exc.message}"
+        except ValueError as exc:
             return f"{where}: {exc}"
         return None
 

@@ -748,11 +748,12 @@ def plot_heat_map(table: SweepTable | pa.Table, metric: str, p1: str, p2: str,
                 color = "white" if 0.299 * r + 0.587 * gg + 0.114 * b < 0.5 else "black"
                 ax.text(cx, cy, f"{v:.3g}", ha="center", va="center", fontsize=8, color=color)
             else:
-                ax.text(cx, cy, "no ok run", ha="center", va="center", fontsize=6, color="0.3")
+                ax.text(cx, cy, "no value", ha="center", va="center", fontsize=6, color="0.3")
     ax.set_xlabel(p1 + (f" ({N_BINS} bins)" if g.x.binned else ""), fontsize=10)
     ax.set_ylabel(p2 + (f" ({N_BINS} bins)" if g.y.binned else ""), fontsize=10)
     ax.set_title(f"{metric_label(metric)}: mean over seeds and the other parameters\n"
-                 f"hatched: no ok run — {t.campaign}", fontsize=10)
+                 f"hatched: no ok run measured it (failed, or never recovered) — {t.campaign}",
+                 fontsize=10)
     return _save(fig, Path(path))
 
 
@@ -911,7 +912,7 @@ def write_report(table_path: Path, out_dir: Path,
         for p1, p2 in itertools.combinations(numeric, 2):
             path = plot_heat_map(t, m, p1, p2, target(m, "map", p1, p2))
             figures.append(ReportFigure(path, section, f"{section}, mean over seeds, {p1} (x) by "
-                                  f"{p2} (y); hatched cells have no ok run"))
+                                  f"{p2} (y); hatched cells have no ok run that measured it"))
     summary = summary_text(t, chosen, notes)
     summary_path = out / SUMMARY_NAME
     summary_path.write_text(summary, encoding="utf-8")
