@@ -96,6 +96,63 @@ class Parameter:
 
 
 @dataclass(frozen=True, kw_only=True)
+class TuneParameter:
+    """One gain ``fasthex tune`` searches: a value in [low, high] set on every path."""
+
+    name: str = spec(doc="label in the report, e.g. kp_pos")
+    paths: tuple[str, ...] = spec(doc="vehicle paths set to the value, e.g. "
+                                  "vehicle.controller.kp_pos (every axis)")
+    low: float = spec(gt=0.0)
+    high: float = spec(gt=0.0)
+    log: bool = spec(False, doc="search on a log scale")
+
+    def __post_init__(self) -> None:
+        from config.schema import ConfigValueError
+        if not self.low < self.high:
+            raise ConfigValueError("high", f"expected low < high, got {self.low:g} .. "
+                                   f"{self.high:g}")
+        if not self.paths:
+            raise ConfigValueError("paths", "expected at least one vehicle path")
+        for i, path in enumerate(self.paths):
+            if not path.startswith("vehicle.controller."):
+                raise ConfigValueError(f"paths[{i}]", "tune searches controller gains: expected "
+                                       f"vehicle.controller.KEY[.AXIS], got {path!r}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class TuneSpec:
+    """``fasthex tune``'s section of a campaign (:mod:`groundstation.tune`)."""
+
+    parameters: tuple[TuneParameter, ...] = spec(doc="the gains searched")
+    trials: int = spec(40, ge=1, le=10_000, doc="Optuna trials")
+    sampler_seed: int = spec(0, ge=0, doc="seed of Optuna's TPE sampler")
+    unrecovered_penalty_s: float = spec(10.0, gt=0.0,
+                                        doc="recovery time counted for a run that never came "
+                                        "back under 10 mm")
+    calm_error_weight_s_per_mm: float = spec(0.1, ge=0.0,
+                                             doc="objective weight of the calm hover's mean "
+                                             "position error")
+    max_saturated_frac: float = spec(0.0, ge=0.0, le=1.0,
+                                     doc="largest fraction of ticks with a rotor at a limit")
+    min_pos_damping: float = spec(0.45, ge=0.0, le=1.0,
+                                  doc="smallest damping ratio of the linearised position loop")
+    min_separation: float = spec(2.5, ge=1.0, doc="attitude over position natural frequency")
+    recovery_target_s: float = spec(2.0, gt=0.0, doc="the held-out check's recovery bound")
+    validation_seeds: tuple[int, ...] = spec((1001, 1002, 1003), ge=0,
+                                             doc="seeds of the held-out check (not tuned on)")
+    validation_mission: str | None = spec("exp1-hover-tilt-steps",
+                                          doc="mission whose mean position error the tuned "
+                                          "gains must not worsen (null: none)")
+
+    def __post_init__(self) -> None:
+        from config.schema import ConfigValueError
+        if not self.parameters:
+            raise ConfigValueError("parameters", "expected at least one gain to search")
+        if not self.validation_seeds:
+            raise ConfigValueError("validation_seeds", "expected at least one seed")
+
+
+@dataclass(frozen=True, kw_only=True)
 class CampaignSpec:
     """A campaign file (module docstring)."""
 
@@ -112,7 +169,7 @@ class CampaignSpec:
     samples: int | None = spec(None, ge=1, le=MAX_RUNS, doc="points for random and lhs")
     sampling_seed: int = spec(0, ge=0)
     seeds: tuple[int, ...] = spec((0,), ge=0, doc="flight seeds: every point flies each")
-    tune: dict[str, Any] | None = spec(None, doc="fasthex tune's section (groundstation.tune)")
+    tune: TuneSpec | None = spec(None, doc="fasthex tune's section (groundstation.tune)")
 
     def __post_init__(self) -> None:
         from config.schema import ConfigValueError
@@ -120,6 +177,12 @@ class CampaignSpec:
             raise ConfigValueError("scenarios", f"expected at least one ({NO_SCENARIO!r}: none)")
         if not self.seeds:
             raise ConfigValueError("seeds", "expected at least one seed")
+        if self.tune is not None:
+            for i, seed in enumerate(self.tune.validation_seeds):
+                if seed in self.seeds:
+                    raise ConfigValueError(f"tune.validation_seeds[{i}]",
+                                           f"seed {seed} is also a tuning seed; the check "
+                                           "must fly seeds not used in tuning")
         if len(set(self.seeds)) != len(self.seeds):
             raise ConfigValueError("seeds", "a seed is listed twice")
         paths = [p.path for p in self.parameters]
@@ -190,15 +253,44 @@ class Campaign:
         """The parameter points, in campaign order (module docstring)."""
         return sample_points(self.spec)
 
-    def runs(self) -> Iterator[RunSpec]:
-        """Every run: scenarios outermost, then points, then seeds."""
+    def runs(self, extra: dict[str, Any] | None = None) -> Iterator[RunSpec]:
+        """Every run: scenarios outermost, then points, then seeds. ``extra`` (dotted path ->
+        value) is set on top of every point (``fasthex tune``'s trial gains)."""
         index = 0
         points = self.points()
         for label in self.spec.scenarios:
             for point in points:
                 for seed in self.spec.seeds:
-                    yield self.build_run(index, label, point, seed)
+                    yield self.build_run(index, label, {**point, **(extra or {})}, seed)
                     index += 1
+
+    def derived(self, *, name: str | None = None, mission: str | None = None,
+                scenarios: Sequence[str] | None = None, seeds: Sequence[int] | None = None,
+                parameters: Sequence[Parameter] | None = None) -> Campaign:
+        """The same campaign with some of its choices replaced (configs found as
+        :func:`load_campaign` finds them)."""
+        changes: dict[str, Any] = {"tune": None}  # a derived campaign is flown, not tuned
+        base = dict(self.base_texts)
+        if name is not None:
+            changes["name"] = name
+        if mission is not None:
+            changes["mission"] = mission
+            file = _find("missions", mission, self.path.parent, str(self.path), self.lines,
+                         "mission")
+            base["mission"] = (file.read_text(encoding="utf-8"), file)
+        if scenarios is not None:
+            changes["scenarios"] = tuple(scenarios)
+            for label in scenarios:
+                if label != NO_SCENARIO and f"scenario:{label}" not in base:
+                    file = _find("scenarios", label, self.path.parent, str(self.path),
+                                 self.lines, "scenarios")
+                    base[f"scenario:{label}"] = (file.read_text(encoding="utf-8"), file)
+        if seeds is not None:
+            changes["seeds"] = tuple(seeds)
+        if parameters is not None:
+            changes["parameters"] = tuple(parameters)
+        return Campaign(dataclasses.replace(self.spec, **changes), self.path, self.text_sha256,
+                        base, self.lines)
 
     def n_runs(self) -> int:
         return len(self.spec.scenarios) * len(self.points()) * len(self.spec.seeds)
@@ -540,8 +632,3 @@ def _fly(run: RunSpec) -> dict[str, Any]:
                            duration_s=opts.get("duration_s"),
                            tilt_override_rad=None if tilt is None else math.radians(tilt),
                            crash_limits=limits)
-
-
-def replace_seeds(spec_: CampaignSpec, seeds: Sequence[int]) -> CampaignSpec:
-    """The same campaign flown with other seeds (``fasthex tune``'s held-out check)."""
-    return dataclasses.replace(spec_, seeds=tuple(seeds))

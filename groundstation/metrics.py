@@ -187,7 +187,10 @@ def disturbance_metrics(rows: np.ndarray, windows_s: list[tuple[float, float]], 
     - ``dist<i>_recovery_s``: from the start to the first tick after the peak from which the
       error's trailing ``smoothing_s`` mean stays under ``threshold_m`` for ``hold_s``; NaN when
       it never does in the window (``dist<i>_recovered`` 0), 0 when it never left;
-    - ``dist<i>_recovered``: 1 or 0.
+    - ``dist<i>_recovered``: 1 or 0;
+
+    and ``calm_pos_err_mean_mm``, the mean error of the measured ticks before the first event
+    (the still hover the disturbances are judged against; NaN when there are none).
     """
     out: dict[str, float] = {}
     t = rows["t_s"].astype(float)
@@ -202,6 +205,9 @@ def disturbance_metrics(rows: np.ndarray, windows_s: list[tuple[float, float]], 
     smooth = (csum[idx + 1] - csum[lo]) / (idx + 1 - lo)
     n_hold = max(1, round(hold_s / dt))
     order = sorted(range(len(windows_s)), key=lambda i: windows_s[i][0])
+    first = windows_s[order[0]][0] if order else math.inf
+    calm = measured & (t < first)
+    out["calm_pos_err_mean_mm"] = 1000.0 * float(np.mean(err[calm])) if calm.any() else math.nan
     for rank, i in enumerate(order):
         start = windows_s[i][0]
         end = min(windows_s[i][1], windows_s[order[rank + 1]][0] if rank + 1 < len(order)

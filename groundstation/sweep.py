@@ -147,7 +147,7 @@ class ProcessPoolRunner:
     def run(self, runs: Iterable[RunSpec]) -> Iterator[dict[str, Any]]:
         pending = iter(runs)
         busy: dict[int, RunSpec] = {}
-        idle: list[int] = []
+        idle: list[int] = list(self._procs)  # a pool is reused from one run() to the next
         while len(self._procs) < self.workers:
             idle.append(self._start())
         exhausted = False
