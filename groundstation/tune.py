@@ -139,6 +139,10 @@ def score(tune: TuneSpec, rows: list[dict[str, Any]], margins: dict[str, float],
     return objective, constraints
 
 
+def _gains_text(gains: dict[str, float]) -> str:
+    return ", ".join(f"{k}={v:.4g}" for k, v in gains.items())
+
+
 def _constrain(trial: Any, values: list[float]) -> None:
     """Optuna's constrained TPE reads these (feasible: every value <= 0)."""
     for name, value in zip(CONSTRAINT_NAMES, values, strict=True):
@@ -198,6 +202,7 @@ def search(campaign: Campaign, runner: Runner, *, workers: int,
                 trial.set_user_attr("note", margins)
                 study.tell(trial, res.objective)
                 results.append(res)
+                log(f"trial {trial.number:3d}: {_gains_text(gains)} -> not flown: {margins}")
                 continue
             if (margins["pos_min_damping"] < tune.min_pos_damping
                     or margins["separation"] < tune.min_separation):
@@ -208,6 +213,10 @@ def search(campaign: Campaign, runner: Runner, *, workers: int,
                 _constrain(trial, res.constraints)
                 study.tell(trial, res.objective)
                 results.append(res)
+                log(f"trial {trial.number:3d}: {_gains_text(gains)} -> not flown: linearised "
+                    f"position damping {margins['pos_min_damping']:.2f} (at least "
+                    f"{tune.min_pos_damping:g}), loop separation {margins['separation']:.2f} "
+                    f"(at least {tune.min_separation:g})")
                 continue
             pending[trial.number] = (trial, gains, margins)
             for spec in campaign.runs(overrides(tune, gains)):
@@ -231,7 +240,7 @@ def search(campaign: Campaign, runner: Runner, *, workers: int,
             study.tell(trial, objective)
             res = TrialResult(number, gains, objective, constraints, rows[number], margins)
             results.append(res)
-            log(f"trial {number:3d}: " + ", ".join(f"{k}={v:.4g}" for k, v in gains.items())
+            log(f"trial {number:3d}: {_gains_text(gains)}"
                 + f" -> objective {objective:.3f}"
                 + ("" if res.feasible else " (infeasible: "
                    + ", ".join(n for n, c in zip(CONSTRAINT_NAMES, constraints, strict=True)
