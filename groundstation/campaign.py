@@ -365,7 +365,8 @@ def apply_overrides(text: str, overrides: Sequence[tuple[list[str], Any, str]]) 
     data = yaml.safe_load(text)
     for keys, value, full in overrides:
         data = _set_path(data, keys, value, full)
-    return yaml.safe_dump(data, sort_keys=False)
+    # lists of numbers on one line ([0.089, 0.091, 0.164]), as the shipped files write them
+    return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=100)
 
 
 def _set_path(node: Any, keys: list[str], value: Any, full: str) -> Any:

@@ -391,10 +391,10 @@ def tuned_vehicle_text(campaign: Campaign, tuned: dict[str, float], *, trials: i
                   f"{campaign.name})".strip(), "vehicle.description"))
     body = apply_overrides(text, items)
     header = (f"# {file.name} with the controller gains tuned by `fasthex tune "
-              f"{campaign.path.name}` ({trials} trials, best objective {objective:.3f}):\n"
+              f"{campaign.path.name}`\n# ({trials} trials, best objective {objective:.3f}):\n"
               + "".join(f"#   {k} = {v:.4g}\n" for k, v in tuned.items())
-              + "# Everything else is the base file's. Search, constraints and the held-out "
-              "check: the tune report.\n")
+              + "# Everything else is the base file's. Search, constraints and the held-out\n"
+              "# check: the tune report.\n")
     return header + body
 
 

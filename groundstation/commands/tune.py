@@ -85,14 +85,16 @@ def run(args: argparse.Namespace) -> int:
             return 1
         print(f"best: trial {best.number}, objective {best.objective:.3f}; flying the held-out "
               "check", file=sys.stderr)
-        checks, _ = validate(campaign, runner, baseline, best.gains)
+        # the gains as the vehicle file will hold them (4 decimals) are the ones checked
+        gains = {k: round(v, 4) for k, v in best.gains.items()}
+        checks, _ = validate(campaign, runner, baseline, gains)
     except KeyboardInterrupt:
         print("\nfasthex: tune interrupted; nothing written", file=sys.stderr)
         return 130
     finally:
         runner.close()
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(tuned_vehicle_text(campaign, best.gains, trials=len(results),
+    out.write_text(tuned_vehicle_text(campaign, gains, trials=len(results),
                                       objective=best.objective))
     report = out.with_name(out.stem + "-report.md")
     text = report_markdown(campaign, results, best, baseline, checks)
