@@ -273,6 +273,7 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
                            start_q_wb=mission.start_q_wb,
                            plant=None if scenario is None else scenario.plant,
                            disturbances=() if scenario is None else scenario.disturbances)
+    computer.warm_up(sim.tilt_rad())  # before the flight clock starts
     rng = np.random.default_rng([seed, 7])
     source: StateSource = state_source if state_source is not None else \
         TruthPlusNoise(sim.state, preset, rng)

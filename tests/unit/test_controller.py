@@ -10,6 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controller.geometric import GeometricController, bisect_tilt, desired_rotation
+from controller.missions import Mission
+from controller.pipeline import FlightComputer
 from controller.reference import (
     IDENTITY_Q,
     ZERO3,
@@ -19,7 +21,7 @@ from controller.reference import (
     quat_from_euler_zyx,
     quat_to_rot,
 )
-from groundstation.configs import load_vehicle
+from groundstation.configs import load_mission, load_vehicle
 
 PARAMS = load_vehicle("fasthex")
 A30 = math.radians(30.0)
@@ -214,3 +216,24 @@ def test_that_the_feedforward_mode_damps_the_rate_relative_to_the_reference() ->
     # Assert: the paper's law damps the whole rate (-K_w w), the feed-forward mode nothing
     assert with_ff.u_tau_b_n_m == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
     assert paper.u_tau_b_n_m[0] == pytest.approx(-1.5 * 0.5)
+
+
+def test_that_a_warmed_up_flight_computer_steps_first_on_built_caches() -> None:
+    # Fixture: the ground station warms the computer before arming; the first step at
+    # TAKEOFF must not build the wrench map or the thrust axes (~1 ms of numpy and JIT)
+    mission = Mission(load_mission("exp1-hover-tilt-steps"))
+    sut = FlightComputer(PARAMS, mission)
+    alpha = sut.planner.alpha_cmd_rad
+    state = VehicleState(mission.start_pos_w_m, ZERO3, IDENTITY_Q, ZERO3)
+    # Test
+    sut.warm_up()
+    built = sut.controller.mapper.recomputations
+    axes_alpha = sut._axes_alpha
+    stepped = sut.controller.memory.last_t_s
+    sut.step(0.0, state, alpha)
+    sut.thrust_force_b(alpha, (1.0,) * 6)
+    # Assert: both caches were there before the step, and the step reused them
+    assert built == 1
+    assert axes_alpha == alpha
+    assert sut.controller.mapper.recomputations == 1
+    assert stepped is None  # the warm-up stepped nothing
