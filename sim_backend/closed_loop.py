@@ -203,8 +203,7 @@ class UkfStateSource:
         while the observer is off."""
         if not self.ukf.initialized or not self.ukf.cfg.force_observer:
             return None
-        f = self.ukf.estimate().force_ext_w_n.tolist()
-        return (f[0], f[1], f[2])
+        return self.ukf.force_ext_w_n()
 
     def update(self, t_s: float, imu: ImuReading, mocap: list[PoseReading]) -> VehicleState:
         self.ukf.predict(imu.t_s, imu.gyro_rad_s, imu.accel_m_s2, self._force_cmd_b_n)
@@ -217,11 +216,7 @@ class UkfStateSource:
                 return VehicleState((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0),
                                     imu.gyro_rad_s)
             return VehicleState(pose.pos_w_m, (0.0, 0.0, 0.0), pose.q_wb, imu.gyro_rad_s)
-        e = self.ukf.estimate()
-        p, v, q, w = (e.pos_w_m.tolist(), e.vel_w_m_s.tolist(), e.q_wb.tolist(),
-                      e.omega_b_rad_s.tolist())
-        return VehicleState((p[0], p[1], p[2]), (v[0], v[1], v[2]), (q[0], q[1], q[2], q[3]),
-                            (w[0], w[1], w[2]))
+        return VehicleState(*self.ukf.output_state())
 
 
 @dataclass(frozen=True)
