@@ -56,16 +56,17 @@ S_LANDED = 20       # 1.0 resting on the ground, else 0.0
 S_FB = 21           # 3: body force of the last step (N, body)
 S_FEXT = 24         # 3: tether + OU + scheduled world force of the last step (N, world)
 S_T = 27            # simulated time (s)
-S_READ = 28         # the simulator reads [0, S_READ) back after every call
-S_W_CMD = 28        # 6: rotor speed set-points (Hz, >= 0)
-S_SERVO_GOAL = 34   # the servo's goal (rad)
-S_OU = 35           # 3: the Ornstein-Uhlenbeck force (N, world)
-S_TILTS = 38        # 6: actual signed propeller tilts (rad)
-S_AXES = 44         # 6 x 3: thrust axes (body)
-S_DAXES = 62        # 6 x 3: d axis / d tilt
-S_MOMENTS = 80      # 6 x 3: arm moment + drag torque per unit thrust (about the centre of mass)
-S_C_F = 98          # 6: actual thrust coefficients (N/Hz^2)
-N_STATE = 104
+S_SPECIFIC = 28     # 3: what an ideal accelerometer reads now (m/s^2, body)
+S_READ = 31         # the simulator reads [0, S_READ) back after every call
+S_W_CMD = 31        # 6: rotor speed set-points (Hz, >= 0)
+S_SERVO_GOAL = 37   # the servo's goal (rad)
+S_OU = 38           # 3: the Ornstein-Uhlenbeck force (N, world)
+S_TILTS = 41        # 6: actual signed propeller tilts (rad)
+S_AXES = 47         # 6 x 3: thrust axes (body)
+S_DAXES = 65        # 6 x 3: d axis / d tilt
+S_MOMENTS = 83      # 6 x 3: arm moment + drag torque per unit thrust (about the centre of mass)
+S_C_F = 101         # 6: actual thrust coefficients (N/Hz^2)
+N_STATE = 107
 
 # -- the constants ----------------------------------------------------------------------------
 P_M = 0             # mass (kg)
@@ -370,14 +371,41 @@ def _substep(s: FloatArray, p: FloatArray, h: float, normals: FloatArray, k_norm
 
 
 @_jit
+def specific_force(s: FloatArray, p: FloatArray) -> None:
+    """What an ideal accelerometer reads (m/s^2, body) into ``s[S_SPECIFIC:]``: (F_b + R^T
+    F_ext) / m of the last step, or the ground's reaction when resting."""
+    qw, qx, qy, qz = s[S_X + 6], s[S_X + 7], s[S_X + 8], s[S_X + 9]
+    xx, yy, zz = qx * qx, qy * qy, qz * qz
+    xy, xz, yz = qx * qy, qx * qz, qy * qz
+    wx, wy, wz = qw * qx, qw * qy, qw * qz
+    r0, r1, r2 = 1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy)
+    r3, r4, r5 = 2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx)
+    r6, r7, r8 = 2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy)
+    if s[S_LANDED] != 0.0:
+        g = p[P_G]
+        s[S_SPECIFIC], s[S_SPECIFIC + 1], s[S_SPECIFIC + 2] = r6 * g, r7 * g, r8 * g
+        return
+    m = p[P_M]
+    fe0, fe1, fe2 = s[S_FEXT], s[S_FEXT + 1], s[S_FEXT + 2]
+    s[S_SPECIFIC] = (s[S_FB] + r0 * fe0 + r3 * fe1 + r6 * fe2) / m
+    s[S_SPECIFIC + 1] = (s[S_FB + 1] + r1 * fe0 + r4 * fe1 + r7 * fe2) / m
+    s[S_SPECIFIC + 2] = (s[S_FB + 2] + r2 * fe0 + r5 * fe1 + r8 * fe2) / m
+
+
+@_jit
 def advance(s: FloatArray, p: FloatArray, h: float, n: int, normals: FloatArray,
             k_normal: int, wrenches: FloatArray, next_capture_s: float, capture_period_s: float,
-            out: FloatArray) -> int:
-    """``n`` substeps of ``h`` seconds; row k of ``out`` (``O_*``) tells what happened in
+            out: FloatArray, w_cmd_0: float, w_cmd_1: float, w_cmd_2: float, w_cmd_3: float,
+            w_cmd_4: float, w_cmd_5: float, servo_goal: float) -> int:
+    """``n`` substeps of ``h`` seconds towards the rotor speed set-points ``w_cmd_*`` (Hz,
+    >= 0) and the servo goal (rad); row k of ``out`` (``O_*``) tells what happened in
     substep k. ``normals[k_normal:]`` are the OU force's standard normals (three per substep
     when the OU force is on), ``wrenches[k]`` the scheduled wrench of substep k (``W_*``).
     Returns how many substeps had a touchdown or are due a MoCap capture (at 1 kHz physics
     with a 100 Hz MoCap most calls have none)."""
+    s[S_W_CMD], s[S_W_CMD + 1], s[S_W_CMD + 2] = w_cmd_0, w_cmd_1, w_cmd_2
+    s[S_W_CMD + 3], s[S_W_CMD + 4], s[S_W_CMD + 5] = w_cmd_3, w_cmd_4, w_cmd_5
+    s[S_SERVO_GOAL] = servo_goal
     k1, k2, k3, k4, tmp = np.empty(13), np.empty(13), np.empty(13), np.empty(13), np.empty(13)
     ou = p[P_OU_RMS] > 0.0
     events = 0
@@ -401,4 +429,5 @@ def advance(s: FloatArray, p: FloatArray, h: float, n: int, normals: FloatArray,
         row[O_CAPTURE] = 1.0 if capture else 0.0
         if capture or not math.isnan(speed):
             events += 1
+    specific_force(s, p)
     return events

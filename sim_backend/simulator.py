@@ -180,7 +180,10 @@ class FastHexSimulator:
         # a fixed-tilt airframe (min = max tilt, rate 0) is built at its tilt
         st[phy.S_SERVO] = st[phy.S_SERVO_GOAL] = math.radians(params.tilt.min_tilt_deg)
         phy.set_tilts(st, p, st[phy.S_SERVO])
+        phy.specific_force(st, p)
         self._s = st
+        self._w_cmd: tuple[float, ...] = (0.0,) * N_ROTORS
+        self._servo_goal = float(st[phy.S_SERVO_GOAL])
         #: vertical speeds (m/s, positive down) at each touchdown
         self.touchdown_speeds_m_s: list[float] = []
         self._normals = np.zeros(0)
@@ -225,8 +228,9 @@ class FastHexSimulator:
         state, so that no flight tick waits on the JIT. The constructor calls it."""
         s, wrenches = self._s.copy(), np.zeros((1, phy.N_WRENCH))
         phy.advance(s, self._p, self._dt, 1, np.zeros(3), 0, wrenches, math.inf, 1.0,
-                    np.empty((1, phy.N_OUT)))
+                    np.empty((1, phy.N_OUT)), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, self._servo_goal)
         phy.set_tilts(s, self._p, s[phy.S_SERVO])
+        phy.specific_force(s, self._p)
 
     def _r_com(self, q: Quat) -> Vec3:
         """R c: from O_B to the centre of mass, world frame."""
@@ -283,8 +287,10 @@ class FastHexSimulator:
                     wrenches[k] = (1.0, ex, ey, ez, *f_b, *t_w, *t_b)
                 t += h
         mocap = self.mocap
+        w = self._w_cmd
         events = phy.advance(self._s, self._p, h, n, self._normals, self._k_normal,
-                             self._wrenches, mocap.next_capture_s, mocap.period_s, self._out)
+                             self._wrenches, mocap.next_capture_s, mocap.period_s, self._out,
+                             w[0], w[1], w[2], w[3], w[4], w[5], self._servo_goal)
         if scheduled:
             self._wrenches[:n, phy.W_ON] = 0.0
         if self._ou_on:
@@ -321,18 +327,8 @@ class FastHexSimulator:
     def specific_force_b(self) -> Vec3:
         """What an ideal accelerometer reads (m/s^2, body): (F_b + R^T F_ext) / m, or the
         ground's reaction when resting."""
-        x = self._x
-        r = quat_to_rot((x[6], x[7], x[8], x[9]))
         v = self._r
-        if v[phy.S_LANDED] != 0.0:
-            g = self._g
-            return (r[6] * g, r[7] * g, r[8] * g)
-        m = self._m
-        fb0, fb1, fb2 = v[phy.S_FB], v[phy.S_FB + 1], v[phy.S_FB + 2]
-        fe0, fe1, fe2 = v[phy.S_FEXT], v[phy.S_FEXT + 1], v[phy.S_FEXT + 2]
-        return ((fb0 + r[0] * fe0 + r[3] * fe1 + r[6] * fe2) / m,
-                (fb1 + r[1] * fe0 + r[4] * fe1 + r[7] * fe2) / m,
-                (fb2 + r[2] * fe0 + r[5] * fe1 + r[8] * fe2) / m)
+        return (v[phy.S_SPECIFIC], v[phy.S_SPECIFIC + 1], v[phy.S_SPECIFIC + 2])
 
     def external_force_w_n(self) -> Vec3:
         """Tether + OU force of the last step (world, N)."""
@@ -357,8 +353,7 @@ class FastHexSimulator:
         if len(speeds_hz) != N_ROTORS:
             raise ValueError(f"expected {N_ROTORS} rotor speeds, got {len(speeds_hz)}")
         # NaN or negative: stopped
-        self._s[phy.S_W_CMD:phy.S_W_CMD + N_ROTORS] = [s if s > 0.0 else 0.0
-                                                       for s in speeds_hz]
+        self._w_cmd = tuple([float(s) if s > 0.0 else 0.0 for s in speeds_hz])
 
     def rotor_speeds_hz(self) -> tuple[float, ...]:
         return tuple(self._r[phy.S_W:phy.S_W + N_ROTORS])
@@ -369,8 +364,10 @@ class FastHexSimulator:
                      for s in self._r[phy.S_W:phy.S_W + N_ROTORS])
 
     def read_imu(self) -> ImuReading:
-        x = self._x
-        return self.imu.sample(self._t, (x[10], x[11], x[12]), self.specific_force_b())
+        v = self._r
+        w = phy.S_X + 10
+        return self.imu.sample(self._t, (v[w], v[w + 1], v[w + 2]),
+                               (v[phy.S_SPECIFIC], v[phy.S_SPECIFIC + 1], v[phy.S_SPECIFIC + 2]))
 
     def scale_rotor_thrust(self, scale: float, rotor: int | None = None) -> None:
         """Fault hook: every rotor's thrust coefficient, or only rotor ``rotor`` (1..6), times
@@ -391,12 +388,13 @@ class FastHexSimulator:
             return
         w = phy.S_X + 10
         self._s[w:w + 3] += d_omega_b_rad_s
+        phy.specific_force(self._s, self._p)
         self._read_back()
 
     def command_tilt_rad(self, tilt_rad: float) -> None:
         if self._tilt_frozen:
             return
-        self._s[phy.S_SERVO_GOAL] = min(max(float(tilt_rad), 0.0), self._tilt_max)
+        self._servo_goal = min(max(float(tilt_rad), 0.0), self._tilt_max)
 
     def tilt_rad(self) -> float:
         return self._r[phy.S_SERVO]
