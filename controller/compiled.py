@@ -1,4 +1,6 @@
-"""The wrench mapper's per-tilt 6x6 map as a compiled loop (numba, cached on disk): the same
+"""Compiled loops of the controller (numba, cached on disk), with plain-Python fallbacks.
+
+The wrench mapper's per-tilt 6x6 map as a compiled loop (numba, cached on disk): the same
 maths as :meth:`controller.model.VehicleModel.allocation` followed by
 :func:`controller.wrench.tikhonov_map`, without the dozen small numpy calls (~60 us) that cost
 more than the arithmetic. The map is recomputed on every tick while the tilt moves.
@@ -6,6 +8,9 @@ more than the arithmetic. The map is recomputed on every tick while the tilt mov
 The solve is an LU factorisation with partial pivoting (LAPACK's ``gesv``, unblocked), so the
 map equals numpy's up to rounding. Without numba :data:`AVAILABLE` is false and the wrench
 mapper keeps the numpy path.
+
+:func:`jit` and :func:`jitable` are the decorators the controller's own modules use (the
+geometric controller's per-tick law, :mod:`controller.geometric`).
 """
 
 from __future__ import annotations
@@ -22,16 +27,28 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 try:
     import numba
+    from numba.extending import register_jitable
 
     AVAILABLE = True
 
-    def _jit(fn: F) -> F:
+    def jit(fn: F) -> F:
+        """Compiled (nopython, cached on disk), no fast-math."""
         return numba.njit(cache=True, fastmath=False, nogil=True)(fn)  # type: ignore[return-value]
+
+    def jitable(fn: F) -> F:
+        """A plain Python function that compiled code may call too."""
+        return register_jitable(fn)
 except ImportError:             # pragma: no cover - exercised where numba is absent
     AVAILABLE = False
 
-    def _jit(fn: F) -> F:
+    def jit(fn: F) -> F:
         return fn
+
+    def jitable(fn: F) -> F:
+        return fn
+
+
+_jit = jit
 
 
 @_jit

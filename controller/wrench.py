@@ -63,6 +63,7 @@ class WrenchMapper:
                                                dtype=np.float64))
         self._work = np.empty((6, 6))
         self._out = np.empty((6, 6))
+        self._array = self._out
 
     def warm_up(self, alpha_rad: float = 0.0) -> None:
         """Compute the map at ``alpha_rad`` now (and compile the kernel, or load it from
@@ -83,9 +84,22 @@ class WrenchMapper:
                 m = self._out
             else:
                 m = tikhonov_map(self.model.allocation(alpha_rad), gamma)
+            self._array = m
             self._rows = tuple(tuple(row) for row in m.tolist())
             self._alpha = alpha_rad
             self.recomputations += 1
+
+    def rows(self, alpha_rad: float) -> tuple[tuple[float, ...], ...]:
+        """The map at ``alpha_rad`` as six rows of Python floats (from the cache when close
+        enough)."""
+        self._ensure(alpha_rad)
+        return self._rows
+
+    def rows_array(self, alpha_rad: float) -> FloatArray:
+        """The map at ``alpha_rad`` (6 x 6, read-only: the cache itself, overwritten when the
+        map is recomputed)."""
+        self._ensure(alpha_rad)
+        return self._array
 
     def thrusts_n(self, alpha_rad: float, u_f_b_n: tuple[float, float, float],
                   u_tau_b_n_m: tuple[float, float, float]) -> list[float]:

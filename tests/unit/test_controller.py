@@ -9,7 +9,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.geometric import GeometricController, bisect_tilt, desired_rotation
+from controller import compiled
+from controller.geometric import (
+    GeometricController,
+    _control_law_compiled,
+    bisect_tilt,
+    control_law,
+    desired_rotation,
+)
 from controller.missions import Mission
 from controller.pipeline import FlightComputer
 from controller.reference import (
@@ -237,3 +244,29 @@ def test_that_a_warmed_up_flight_computer_steps_first_on_built_caches() -> None:
     assert axes_alpha == alpha
     assert sut.controller.mapper.recomputations == 1
     assert stepped is None  # the warm-up stepped nothing
+
+
+_FEEDFORWARD_CONTROLLER = GeometricController(dataclasses.replace(
+    PARAMS, controller=dataclasses.replace(PARAMS.controller, attitude_feedforward=True,
+                                           force_feedforward=True)))
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.floats(-2.0, 2.0), min_size=29, max_size=29),
+       st.floats(0.0, 20.0), st.booleans(), st.floats(0.0, 0.6))
+def test_that_the_compiled_control_law_equals_its_python_source(
+        values: list[float], r_xy: float, feed: bool, alpha: float) -> None:
+    # Fixture: any state and reference (attitudes normalised), any bound and tilt
+    if not compiled.AVAILABLE:
+        pytest.skip("numba not installed: the Python source is all there is")
+    sut = _FEEDFORWARD_CONTROLLER
+    v = list(values)
+    for i in (6, 22):
+        n = math.sqrt(sum(x * x for x in v[i:i + 4])) or 1.0
+        v[i:i + 4] = [x / n for x in v[i:i + 4]] if n != 1.0 else [1.0, 0.0, 0.0, 0.0]
+    rest = (r_xy, feed, 0.3, -0.2, 0.1, 0.01, -0.02, 0.03, 0.001, 0.002, -0.003)
+    # Test
+    got = _control_law_compiled(sut._k, sut.mapper.rows_array(alpha), 20, 0.002, *v, *rest)
+    want = control_law(tuple(sut._k.tolist()), sut.mapper.rows(alpha), 20, 0.002, *v, *rest)
+    # Assert: the same operations in the same order, the same numbers
+    assert got == want
