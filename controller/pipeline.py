@@ -54,6 +54,15 @@ class FlightComputer:
         self._axes_alpha = math.nan
         self._axes: list[tuple[float, float, float]] = []
 
+    def warm_up(self, alpha_rad: float | None = None) -> None:
+        """Build the per-tilt caches of a tick now (the wrench mapper's 6x6 map, compiled or
+        loaded from numba's cache on first use, and the thrust axes of :meth:`thrust_force_b`)
+        at the measured tilt ``alpha_rad`` (default: the planner's initial command), so that
+        the first step after arming does not. Changes no controller or planner state."""
+        alpha = self.planner.alpha_cmd_rad if alpha_rad is None else alpha_rad
+        self.controller.mapper.warm_up(alpha)
+        self.thrust_force_b(alpha, (0.0,) * len(self.model.arm_yaw_rad))
+
     def step(self, t_s: float, state: VehicleState, alpha_rad: float,
              ref: Reference | None = None, hold_tilt: bool = False,
              force_ext_w_n: Vec3 | None = None) -> ControlTick:

@@ -15,6 +15,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from controller.compiled import jitable
+
 Vec3 = tuple[float, float, float]
 Quat = tuple[float, float, float, float]
 Mat3 = tuple[float, float, float, float, float, float, float, float, float]
@@ -54,6 +56,7 @@ class Reference:
     measured: bool = True
 
 
+@jitable
 def quat_to_rot(q: Quat) -> Mat3:
     """Rotation matrix (row-major 9-tuple) of a unit quaternion ``(w, x, y, z)``."""
     w, x, y, z = q

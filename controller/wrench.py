@@ -6,7 +6,9 @@ k2 = 0.02 keeps ~92 % of a demanded yaw torque at alpha = 0 while regularising t
 
 The 6x6 map depends only on alpha, so it is computed once per alpha (estimation-notes §6, as
 uavatt does) and reused while the measured tilt stays within ``alpha_tolerance_rad`` of the
-cached one; the per-tick product is done on Python floats (faster than numpy at 6x6).
+cached one; the per-tick product is done on Python floats (faster than numpy at 6x6). While the
+tilt moves the map is recomputed every tick, compiled (:mod:`controller.compiled`) when numba is
+installed.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
+from controller import compiled
 from controller.model import VehicleModel
 
 FloatArray = npt.NDArray[np.float64]
@@ -50,6 +53,22 @@ class WrenchMapper:
         self._rows: tuple[tuple[float, ...], ...] = ()
         #: number of times the 6x6 map was (re)computed (the cache's effect, for tests)
         self.recomputations = 0
+        # the compiled map computes VehicleModel.allocation's geometry itself
+        self._compiled = compiled.AVAILABLE and \
+            type(model).allocation is VehicleModel.allocation
+        self._geometry = (np.ascontiguousarray(model.arm_yaw_rad, dtype=np.float64),
+                          np.ascontiguousarray(model.tilt_signs, dtype=np.float64),
+                          np.ascontiguousarray(model.rotor_positions_b_m, dtype=np.float64),
+                          np.ascontiguousarray(model.drag_signs * model.c_tau_m,
+                                               dtype=np.float64))
+        self._work = np.empty((6, 6))
+        self._out = np.empty((6, 6))
+        self._array = self._out
+
+    def warm_up(self, alpha_rad: float = 0.0) -> None:
+        """Compute the map at ``alpha_rad`` now (and compile the kernel, or load it from
+        numba's on-disk cache), so that the first tick does not."""
+        self._ensure(alpha_rad)
 
     def matrix(self, alpha_rad: float) -> FloatArray:
         """The 6x6 map at ``alpha_rad`` (from the cache when close enough)."""
@@ -58,11 +77,29 @@ class WrenchMapper:
 
     def _ensure(self, alpha_rad: float) -> None:
         if not abs(alpha_rad - self._alpha) <= self.alpha_tolerance_rad:
-            m = tikhonov_map(self.model.allocation(alpha_rad),
-                             tikhonov_gamma(alpha_rad, self.k1, self.k2_rad))
-            self._rows = tuple(tuple(float(x) for x in row) for row in m)
+            gamma = tikhonov_gamma(alpha_rad, self.k1, self.k2_rad)
+            if self._compiled:
+                compiled.wrench_map(float(alpha_rad), gamma, *self._geometry, self._work,
+                                    self._out)
+                m = self._out
+            else:
+                m = tikhonov_map(self.model.allocation(alpha_rad), gamma)
+            self._array = m
+            self._rows = tuple(tuple(row) for row in m.tolist())
             self._alpha = alpha_rad
             self.recomputations += 1
+
+    def rows(self, alpha_rad: float) -> tuple[tuple[float, ...], ...]:
+        """The map at ``alpha_rad`` as six rows of Python floats (from the cache when close
+        enough)."""
+        self._ensure(alpha_rad)
+        return self._rows
+
+    def rows_array(self, alpha_rad: float) -> FloatArray:
+        """The map at ``alpha_rad`` (6 x 6, read-only: the cache itself, overwritten when the
+        map is recomputed)."""
+        self._ensure(alpha_rad)
+        return self._array
 
     def thrusts_n(self, alpha_rad: float, u_f_b_n: tuple[float, float, float],
                   u_tau_b_n_m: tuple[float, float, float]) -> list[float]:

@@ -467,6 +467,23 @@ class Ukf:
             cov=self._P.copy(), force_ext_w_n=np.array(self._force_w),
             force_ext_sigma_n=math.sqrt(self._force_var), health=self.health())
 
+    def output_state(self) -> tuple[Vec3Tuple, Vec3Tuple, QuatTuple, Vec3Tuple]:
+        """Position, velocity, attitude and body rate of :meth:`estimate` as plain floats,
+        without its covariance copy and health report (a controller's per-tick read)."""
+        xl = self._x.tolist()
+        gx, gy, gz = self._last_gyro.tolist()
+        omega = (gx - xl[9], gy - xl[10], gz - xl[11])
+        if not self._pending:
+            q = self._q_ref.tolist()
+            return ((xl[0], xl[1], xl[2]), (xl[3], xl[4], xl[5]), (q[0], q[1], q[2], q[3]),
+                    omega)
+        p, v, qq = self._pending.newest()
+        return p, v, qq, omega
+
+    def force_ext_w_n(self) -> Vec3Tuple:
+        """The force observer's estimate of :meth:`estimate` (world, N), as plain floats."""
+        return self._force_w
+
     @property
     def fusion_delay_s(self) -> float:
         """How far the filter currently runs behind the newest IMU sample (see the config)."""

@@ -157,6 +157,9 @@ class FlightLoop:
         self.opts = options
         self.sm = FlightStateMachine(limits)
         self.computer = FlightComputer(params, mission)
+        # the vehicle waits at the planner's initial tilt: the first step after arming finds
+        # its caches built
+        self.computer.warm_up()
         self._measured_interval = mission.measured_interval_s()
         # Take-off: the plan's take-off ends where its measured part starts; it waits there
         # (the mission clock stops) until the estimate is at that height (flight.py decides)

@@ -81,19 +81,20 @@ class Crash:
     reason: str
 
 
-def _finite(*vectors: tuple[float, ...]) -> bool:
+def _finite(s: VehicleState) -> bool:
     # a sum is NaN/inf as soon as one term is (and cheaper than a test per element)
-    return math.isfinite(sum(sum(v) for v in vectors))
+    p, v, q, w = s.pos_w_m, s.vel_w_m_s, s.q_wb, s.omega_b_rad_s
+    return math.isfinite(p[0] + p[1] + p[2] + v[0] + v[1] + v[2] + q[0] + q[1] + q[2] + q[3]
+                         + w[0] + w[1] + w[2])
 
 
 def check_crash(t_s: float, limits: CrashLimits, truth: VehicleState, estimate: VehicleState,
                 touchdown_speed_m_s: float | None) -> Crash | None:
     """The crash of this tick, if any: ``touchdown_speed_m_s`` is the vertical speed of a
     touchdown that happened during the tick (``None``: none)."""
-    if not _finite(truth.pos_w_m, truth.vel_w_m_s, truth.q_wb, truth.omega_b_rad_s):
+    if not _finite(truth):
         return Crash(t_s, "non-finite", f"non-finite vehicle state at t = {t_s:.3f} s")
-    if not _finite(estimate.pos_w_m, estimate.vel_w_m_s, estimate.q_wb,
-                   estimate.omega_b_rad_s):
+    if not _finite(estimate):
         return Crash(t_s, "non-finite", f"non-finite state estimate at t = {t_s:.3f} s")
     if touchdown_speed_m_s is not None and touchdown_speed_m_s > limits.max_touchdown_speed_m_s:
         return Crash(t_s, "impact", f"impact at {touchdown_speed_m_s:.2f} m/s vertical at "
@@ -102,6 +103,8 @@ def check_crash(t_s: float, limits: CrashLimits, truth: VehicleState, estimate: 
     lo, hi = limits.workspace_min_w_m, limits.workspace_max_w_m
     if lo is not None and hi is not None:
         p = truth.pos_w_m
+        if lo[0] <= p[0] <= hi[0] and lo[1] <= p[1] <= hi[1] and lo[2] <= p[2] <= hi[2]:
+            return None
         for axis, (x, a, b) in enumerate(zip(p, lo, hi, strict=True)):
             if not a <= x <= b:
                 where = ", ".join(f"{c:.2f}" for c in p)
@@ -143,19 +146,21 @@ class TruthPlusNoise:
 
     def update(self, t_s: float, imu: ImuReading, mocap: list[PoseReading]) -> VehicleState:
         s = self._truth()
-        n, sp, sv, sa, sw = self._n, self._sp, self._sv, self._sa, self._sw
+        sp, sv, sa, sw = self._sp, self._sv, self._sa, self._sw
         if sp == 0.0 and sv == 0.0 and sa == 0.0 and sw == 0.0:
             return s
         p, v, w = s.pos_w_m, s.vel_w_m_s, s.omega_b_rad_s
         q: Quat = s.q_wb
-        if sa > 0.0:
-            rx, ry, rz = sa * n(), sa * n(), sa * n()
+        if sa > 0.0:  # the attitude noise first, then position, velocity and rate
+            rx, ry, rz = self._n.take(3)
+            rx, ry, rz = sa * rx, sa * ry, sa * rz
             ang = math.sqrt(rx * rx + ry * ry + rz * rz)
             if ang > 0.0:
                 q = quat_mul(q, quat_from_axis_angle((rx / ang, ry / ang, rz / ang), ang))
-        return VehicleState((p[0] + sp * n(), p[1] + sp * n(), p[2] + sp * n()),
-                            (v[0] + sv * n(), v[1] + sv * n(), v[2] + sv * n()), q,
-                            (w[0] + sw * n(), w[1] + sw * n(), w[2] + sw * n()))
+        n = self._n.take(9)
+        return VehicleState((p[0] + sp * n[0], p[1] + sp * n[1], p[2] + sp * n[2]),
+                            (v[0] + sv * n[3], v[1] + sv * n[4], v[2] + sv * n[5]), q,
+                            (w[0] + sw * n[6], w[1] + sw * n[7], w[2] + sw * n[8]))
 
 
 @runtime_checkable
@@ -203,8 +208,7 @@ class UkfStateSource:
         while the observer is off."""
         if not self.ukf.initialized or not self.ukf.cfg.force_observer:
             return None
-        f = self.ukf.estimate().force_ext_w_n.tolist()
-        return (f[0], f[1], f[2])
+        return self.ukf.force_ext_w_n()
 
     def update(self, t_s: float, imu: ImuReading, mocap: list[PoseReading]) -> VehicleState:
         self.ukf.predict(imu.t_s, imu.gyro_rad_s, imu.accel_m_s2, self._force_cmd_b_n)
@@ -217,11 +221,7 @@ class UkfStateSource:
                 return VehicleState((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0),
                                     imu.gyro_rad_s)
             return VehicleState(pose.pos_w_m, (0.0, 0.0, 0.0), pose.q_wb, imu.gyro_rad_s)
-        e = self.ukf.estimate()
-        p, v, q, w = (e.pos_w_m.tolist(), e.vel_w_m_s.tolist(), e.q_wb.tolist(),
-                      e.omega_b_rad_s.tolist())
-        return VehicleState((p[0], p[1], p[2]), (v[0], v[1], v[2]), (q[0], q[1], q[2], q[3]),
-                            (w[0], w[1], w[2]))
+        return VehicleState(*self.ukf.output_state())
 
 
 @dataclass(frozen=True)
@@ -273,6 +273,7 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
                            start_q_wb=mission.start_q_wb,
                            plant=None if scenario is None else scenario.plant,
                            disturbances=() if scenario is None else scenario.disturbances)
+    computer.warm_up(sim.tilt_rad())  # before the flight clock starts
     rng = np.random.default_rng([seed, 7])
     source: StateSource = state_source if state_source is not None else \
         TruthPlusNoise(sim.state, preset, rng)

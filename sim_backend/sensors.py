@@ -43,6 +43,14 @@ class NormalStream:
         self._i += 1
         return x
 
+    def take(self, count: int) -> list[float]:
+        """The next ``count`` numbers at once (the same as ``count`` calls)."""
+        i, j = self._i, self._i + count
+        if j <= len(self._buf):
+            self._i = j
+            return self._buf[i:j]
+        return [self() for _ in range(count)]
+
 
 class ImuModel:
     """Gyro and accelerometer with constant biases and white noise."""
@@ -59,13 +67,14 @@ class ImuModel:
 
     def sample(self, t_s: float, omega_b_rad_s: Vec3, specific_force_b_m_s2: Vec3
                ) -> ImuReading:
-        n, gs, as_ = self._n, self.gyro_sigma_rad_s, self.accel_sigma_m_s2
+        gs, as_ = self.gyro_sigma_rad_s, self.accel_sigma_m_s2
         gb, ab = self.gyro_bias_rad_s, self.accel_bias_m_s2
         w, f = omega_b_rad_s, specific_force_b_m_s2
+        n0, n1, n2, n3, n4, n5 = self._n.take(6)
         return ImuReading(
             t_s,
-            (w[0] + gb[0] + gs * n(), w[1] + gb[1] + gs * n(), w[2] + gb[2] + gs * n()),
-            (f[0] + ab[0] + as_ * n(), f[1] + ab[1] + as_ * n(), f[2] + ab[2] + as_ * n()),
+            (w[0] + gb[0] + gs * n0, w[1] + gb[1] + gs * n1, w[2] + gb[2] + gs * n2),
+            (f[0] + ab[0] + as_ * n3, f[1] + ab[1] + as_ * n4, f[2] + ab[2] + as_ * n5),
         )
 
 

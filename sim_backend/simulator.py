@@ -37,7 +37,9 @@ from first principles, not from the controller's allocation matrix:
   touchdown speeds are recorded).
 
 All random quantities come from one seeded ``numpy`` generator: two simulators with the same
-parameters and seed produce the same flight. The per-step code runs on Python floats.
+parameters and seed produce the same flight. The physics step is compiled
+(:mod:`sim_backend.physics`, numba, warmed up in the constructor); the per-tick API (state,
+IMU, MoCap) hands out Python floats.
 
 Besides its fast in-process API (:meth:`state`, :meth:`specific_force_b`, :meth:`poll_mocap`)
 the simulator implements :class:`sim_backend.vehicle.EmulatedVehicle` for the device emulators.
@@ -53,13 +55,17 @@ import numpy as np
 from controller.model import CARDAN_JOINTS_PER_PROPELLER
 from controller.params import VehicleParams
 from controller.reference import IDENTITY_Q, Quat, Vec3, VehicleState, quat_to_rot
+from sim_backend import physics as phy
 from sim_backend.disturbances import DisturbancePreset
 from sim_backend.scenario import DisturbanceEvent, DisturbanceSchedule, PlantOverrides
-from sim_backend.sensors import ImuModel, MocapModel, NormalStream
+from sim_backend.sensors import ImuModel, MocapModel
 from sim_backend.vehicle import ImuReading, PoseReading
 
 TWO_PI = 2.0 * math.pi
 N_ROTORS = 6
+#: standard normals drawn at a time for the OU force
+NORMAL_BLOCK = 4096
+assert tuple(CARDAN_JOINTS_PER_PROPELLER) == phy.CARDAN_JOINTS, "physics.set_tilts unrolls it"
 
 
 def cardan_tilts(alpha_des_rad: float, worm_ratio: float, cos_bend: float) -> list[float]:
@@ -94,7 +100,8 @@ class FastHexSimulator:
         self.preset = preset
         self.seed = seed
         rng = np.random.default_rng(seed)
-        self._normal = NormalStream(np.random.default_rng(rng.integers(1 << 62)))
+        # the OU force's standard normals, drawn in blocks (as sensors.NormalStream hands them)
+        self._normal_rng = np.random.default_rng(rng.integers(1 << 62))
         self.imu = ImuModel(preset, np.random.default_rng(rng.integers(1 << 62)))
         self.mocap = MocapModel(preset, np.random.default_rng(rng.integers(1 << 62)))
 
@@ -102,70 +109,128 @@ class FastHexSimulator:
         self._g = params.gravity_m_s2
         plant = self.plant
         j = plant.inertia_matrix(params.inertia_diag_kg_m2)
-        self._j = (float(j[0, 0]), float(j[1, 1]), float(j[2, 2]))
         # a full inertia takes the slower matrix path of Euler's equation
         off_diagonal = float(abs(j[0, 1]) + abs(j[0, 2]) + abs(j[1, 2]))
-        self._j_full = [float(v) for v in j.ravel()] if off_diagonal > 0.0 else None
-        self._j_inv = [float(v) for v in np.linalg.inv(j).ravel()]
         self._com = plant.com_offset_b_m
         self._has_com = self._com != (0.0, 0.0, 0.0)
         l_m = params.geometry.arm_length_m
-        self._yaw = [i * math.pi / 3.0 + math.radians(plant.arm_yaw_error_deg[i])
-                     for i in range(N_ROTORS)]
-        self._pos = [(l_m * math.cos(y), l_m * math.sin(y), 0.0) for y in self._yaw]
+        yaw = [i * math.pi / 3.0 + math.radians(plant.arm_yaw_error_deg[i])
+               for i in range(N_ROTORS)]
         ccw = 1.0 if params.rotors.first_rotor_ccw else -1.0
-        #: +1 where the propeller spins about +axis; the drag torque opposes the spin
-        self._spin_sign = [ccw * (1.0 if i % 2 == 0 else -1.0) for i in range(N_ROTORS)]
-        self._c_tau = [params.rotors.drag_coeff_m * s for s in plant.drag_coeff_scale]
         spread = preset.thrust_coeff_spread
         c_f = params.rotors.thrust_coeff_n_per_hz2
         # the random draws do not depend on the plant: one seed, the same noise for any plant
-        #: actual per-rotor thrust coefficients (N/Hz^2)
-        self.c_f_actual = [float(c_f * (1.0 + spread * u)) * s
-                           for u, s in zip(rng.uniform(-1.0, 1.0, N_ROTORS),
-                                           plant.thrust_coeff_scale, strict=True)]
+        c_f_actual = [float(c_f * (1.0 + spread * u)) * s
+                      for u, s in zip(rng.uniform(-1.0, 1.0, N_ROTORS),
+                                      plant.thrust_coeff_scale, strict=True)]
         #: fixed misalignment of each propeller about its arm's y axis (rad)
         self.misalignment_rad = [
             float(b) + math.radians(extra) for b, extra in
             zip(rng.normal(0.0, math.radians(preset.misalignment_deg), N_ROTORS),
                 plant.propeller_misalignment_deg, strict=True)]
-        self._i_r = preset.rotor_inertia_kg_m2
-        self._tau_rotor = (preset.rotor_time_constant_s if plant.rotor_time_constant_s is None
-                           else plant.rotor_time_constant_s)
         #: the scenario's scheduled forces and torques (they act from start_scenario on)
         self.schedule = DisturbanceSchedule(disturbances)
         self._tilt_frozen = False
-        self._worm = params.tilt.worm_ratio
-        self._cos_bend = math.cos(math.radians(params.tilt.cardan_bend_deg))
-        self._cardan = preset.cardan_chain
-        self._tilt_rate = math.radians(params.tilt.max_rate_deg_s)
         self._tilt_max = math.radians(params.tilt.mechanical_limit_deg)
-        # the preset gives the rms of the force vector; each axis carries a third of the power
-        self._ou_rms = preset.ou_force_rms_n / math.sqrt(3.0)
-        self._ou_tau = preset.ou_force_tau_s
-        self._tether_n = preset.tether_force_n
-        self._anchor = preset.tether_anchor_w_m
-
         self._dt = 1.0 / preset.physics_rate_hz
+
+        p = np.zeros(phy.N_PARAMS)
+        p[phy.P_M], p[phy.P_G] = self._m, self._g
+        p[phy.P_J:phy.P_J + 3] = (j[0, 0], j[1, 1], j[2, 2])
+        p[phy.P_J_FULL] = 1.0 if off_diagonal > 0.0 else 0.0
+        p[phy.P_J_MAT:phy.P_J_MAT + 9] = j.ravel()
+        p[phy.P_J_INV:phy.P_J_INV + 9] = np.linalg.inv(j).ravel()
+        p[phy.P_COM:phy.P_COM + 3] = self._com
+        p[phy.P_HAS_COM] = 1.0 if self._has_com else 0.0
+        p[phy.P_I_R] = preset.rotor_inertia_kg_m2
+        p[phy.P_TAU_ROTOR] = (preset.rotor_time_constant_s if plant.rotor_time_constant_s is None
+                              else plant.rotor_time_constant_s)
+        p[phy.P_TILT_RATE] = math.radians(params.tilt.max_rate_deg_s)
+        p[phy.P_WORM] = params.tilt.worm_ratio
+        p[phy.P_COS_BEND] = math.cos(math.radians(params.tilt.cardan_bend_deg))
+        p[phy.P_CARDAN] = 1.0 if preset.cardan_chain else 0.0
+        # the preset gives the rms of the force vector; each axis carries a third of the power
+        p[phy.P_OU_RMS] = preset.ou_force_rms_n / math.sqrt(3.0)
+        p[phy.P_OU_TAU] = preset.ou_force_tau_s
+        p[phy.P_TETHER] = preset.tether_force_n
+        p[phy.P_ANCHOR:phy.P_ANCHOR + 3] = preset.tether_anchor_w_m
+        p[phy.P_MISALIGN:phy.P_MISALIGN + N_ROTORS] = self.misalignment_rad
+        p[phy.P_YAW:phy.P_YAW + N_ROTORS] = yaw
+        p[phy.P_POS:phy.P_POS + 3 * N_ROTORS] = [
+            v for y in yaw for v in (l_m * math.cos(y), l_m * math.sin(y), 0.0)]
+        #: +1 where the propeller spins about +axis; the drag torque opposes the spin
+        p[phy.P_SPIN:phy.P_SPIN + N_ROTORS] = [ccw * (1.0 if i % 2 == 0 else -1.0)
+                                               for i in range(N_ROTORS)]
+        p[phy.P_C_TAU:phy.P_C_TAU + N_ROTORS] = [params.rotors.drag_coeff_m * s
+                                                 for s in plant.drag_coeff_scale]
+        self._p = p
+        self._ou_on = p[phy.P_OU_RMS] > 0.0
+
         self._t = 0.0
         self.ground_height_m = start_pos_w_m[2] if ground_height_m is None else ground_height_m
         q0 = _yaw_only(start_q_wb)
         # the state is the centre of mass's: O_B + R c
         rc = self._r_com(q0)
-        self._x = [start_pos_w_m[0] + rc[0], start_pos_w_m[1] + rc[1],
-                   self.ground_height_m + rc[2], 0.0, 0.0, 0.0,
-                   q0[0], q0[1], q0[2], q0[3], 0.0, 0.0, 0.0]
-        self.landed = True
+        st = np.zeros(phy.N_STATE)
+        st[phy.S_X:phy.S_X + 13] = [
+            start_pos_w_m[0] + rc[0], start_pos_w_m[1] + rc[1], self.ground_height_m + rc[2],
+            0.0, 0.0, 0.0, q0[0], q0[1], q0[2], q0[3], 0.0, 0.0, 0.0]
+        st[phy.S_LANDED] = 1.0
+        st[phy.S_C_F:phy.S_C_F + N_ROTORS] = c_f_actual
+        # a fixed-tilt airframe (min = max tilt, rate 0) is built at its tilt
+        st[phy.S_SERVO] = st[phy.S_SERVO_GOAL] = math.radians(params.tilt.min_tilt_deg)
+        phy.set_tilts(st, p, st[phy.S_SERVO])
+        phy.specific_force(st, p)
+        self._s = st
+        self._w_cmd: tuple[float, ...] = (0.0,) * N_ROTORS
+        self._servo_goal = float(st[phy.S_SERVO_GOAL])
         #: vertical speeds (m/s, positive down) at each touchdown
         self.touchdown_speeds_m_s: list[float] = []
-        self._w = [0.0] * N_ROTORS
-        self._w_cmd = [0.0] * N_ROTORS
-        # a fixed-tilt airframe (min = max tilt, rate 0) is built at its tilt
-        self._servo = self._servo_goal = math.radians(params.tilt.min_tilt_deg)
-        self._ou = [0.0, 0.0, 0.0]
-        self._fb: Vec3 = (0.0, 0.0, 0.0)
-        self._fext: Vec3 = (0.0, 0.0, 0.0)
-        self._set_tilts(self._servo)
+        self._normals = np.zeros(0)
+        self._k_normal = 0
+        self._out = np.empty((0, phy.N_OUT))
+        self._wrenches = np.zeros((0, phy.N_WRENCH))
+        self._read_back()
+        self.warm_up()
+
+    @property
+    def ground_height_m(self) -> float:
+        """Height of O_B resting on the landing gear (m)."""
+        return float(self._p[phy.P_GROUND])
+
+    @ground_height_m.setter
+    def ground_height_m(self, value: float) -> None:
+        self._p[phy.P_GROUND] = value
+
+    @property
+    def c_f_actual(self) -> list[float]:
+        """Actual per-rotor thrust coefficients (N/Hz^2)."""
+        return self._s[phy.S_C_F:phy.S_C_F + N_ROTORS].tolist()
+
+    @c_f_actual.setter
+    def c_f_actual(self, value: Sequence[float]) -> None:
+        self._s[phy.S_C_F:phy.S_C_F + N_ROTORS] = value
+
+    @property
+    def landed(self) -> bool:
+        """Resting on the ground."""
+        return self._r[phy.S_LANDED] != 0.0
+
+    def _read_back(self) -> None:
+        """Python floats of what the per-tick API reads (after every change of the state)."""
+        r = self._s[:phy.S_READ].tolist()
+        self._r = r
+        self._x = r[phy.S_X:phy.S_X + 13]
+        self._t = r[phy.S_T]
+
+    def warm_up(self) -> None:
+        """Compile the physics (or load it from numba's on-disk cache) now, on a copy of the
+        state, so that no flight tick waits on the JIT. The constructor calls it."""
+        s, wrenches = self._s.copy(), np.zeros((1, phy.N_WRENCH))
+        phy.advance(s, self._p, self._dt, 1, np.zeros(3), 0, wrenches, math.inf, 1.0,
+                    np.empty((1, phy.N_OUT)), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, self._servo_goal)
+        phy.set_tilts(s, self._p, s[phy.S_SERVO])
+        phy.specific_force(s, self._p)
 
     def _r_com(self, q: Quat) -> Vec3:
         """R c: from O_B to the centre of mass, world frame."""
@@ -187,201 +252,57 @@ class FastHexSimulator:
         now)."""
         self.schedule.t0_s = self._t if t0_s is None else t0_s
 
-    # -- geometry of the propellers ---------------------------------------------------------
-    def _set_tilts(self, servo_rad: float) -> list[float]:
-        if self._cardan:
-            tilts = cardan_tilts(servo_rad, self._worm, self._cos_bend)
-        else:
-            tilts = [servo_rad if i % 2 == 0 else -servo_rad for i in range(N_ROTORS)]
-        axes, daxes, moments = [], [], []
-        for i in range(N_ROTORS):
-            sa, ca = math.sin(tilts[i]), math.cos(tilts[i])
-            sb, cb = math.sin(self.misalignment_rad[i]), math.cos(self.misalignment_rad[i])
-            sy, cy = math.sin(self._yaw[i]), math.cos(self._yaw[i])
-            lx, ly, lz = sb, -sa * cb, ca * cb          # Rx(a) Ry(b) e3
-            dx, dy, dz = 0.0, -ca * cb, -sa * cb        # d/da
-            ax = (cy * lx - sy * ly, sy * lx + cy * ly, lz)
-            axes.append(ax)
-            daxes.append((cy * dx - sy * dy, sy * dx + cy * dy, dz))
-            # the rotor moments act about the centre of mass
-            c = self._com
-            px, py, pz = (self._pos[i][0] - c[0], self._pos[i][1] - c[1],
-                          self._pos[i][2] - c[2])
-            d = -self._spin_sign[i] * self._c_tau[i]
-            moments.append((py * ax[2] - pz * ax[1] + d * ax[0],
-                            pz * ax[0] - px * ax[2] + d * ax[1],
-                            px * ax[1] - py * ax[0] + d * ax[2]))
-        self._tilts = tilts
-        self._axes, self._daxes, self._moments = axes, daxes, moments
-        return tilts
-
     def propeller_tilts_rad(self) -> tuple[float, ...]:
         """The six actual signed propeller tilts (rad)."""
-        return tuple(self._tilts)
+        return tuple(self._s[phy.S_TILTS:phy.S_TILTS + N_ROTORS].tolist())
 
-    # -- physics -----------------------------------------------------------------------------
-    def _substep(self, h: float) -> None:
-        # servo: rate-limited towards the goal; per-propeller tilt rates for the gyroscopic term
-        tilt_rates = None
-        if self._servo != self._servo_goal:
-            step = self._tilt_rate * h
-            d = self._servo_goal - self._servo
-            self._servo += step if d > step else (-step if d < -step else d)
-            old = self._tilts
-            new = self._set_tilts(self._servo)
-            tilt_rates = [(new[i] - old[i]) / h for i in range(N_ROTORS)]
-
-        # rotors: first-order lag, exact over the step
-        w, cmd = self._w, self._w_cmd
-        if self._tau_rotor > 0.0:
-            a = 1.0 - math.exp(-h / self._tau_rotor)
-            wdot = [(cmd[i] - w[i]) / self._tau_rotor for i in range(N_ROTORS)]
-            w = [w[i] + (cmd[i] - w[i]) * a for i in range(N_ROTORS)]
-        else:
-            wdot = [0.0] * N_ROTORS
-            w = list(cmd)
-        self._w = w
-
-        # body wrench, propeller by propeller
-        fx = fy = fz = tx = ty = tz = hx = hy = hz = 0.0
-        axes, moments, c_f = self._axes, self._moments, self.c_f_actual
-        i_r = self._i_r
-        for i in range(N_ROTORS):
-            f = c_f[i] * w[i] * w[i]
-            ax, mo = axes[i], moments[i]
-            fx += f * ax[0]
-            fy += f * ax[1]
-            fz += f * ax[2]
-            tx += f * mo[0]
-            ty += f * mo[1]
-            tz += f * mo[2]
-            if i_r > 0.0:
-                k = i_r * TWO_PI * self._spin_sign[i]
-                kw = k * w[i]
-                hx += kw * ax[0]
-                hy += kw * ax[1]
-                hz += kw * ax[2]
-                # reaction to dh/dt: spin-up along the axis, tilting turns the axis
-                kd = k * wdot[i]
-                tx -= kd * ax[0]
-                ty -= kd * ax[1]
-                tz -= kd * ax[2]
-                if tilt_rates is not None:
-                    da = self._daxes[i]
-                    kt = kw * tilt_rates[i]
-                    tx -= kt * da[0]
-                    ty -= kt * da[1]
-                    tz -= kt * da[2]
-
-        x = self._x
-        ex = ey = ez = 0.0
-        wrench = self.schedule.wrench(self._t) if self.schedule.t0_s is not None else None
-        if wrench is not None:  # the scenario's: world force, body force, torques (at C)
-            (ex, ey, ez), f_b, t_w, t_b = wrench
-            fx, fy, fz = fx + f_b[0], fy + f_b[1], fz + f_b[2]
-            tx, ty, tz = tx + t_b[0], ty + t_b[1], tz + t_b[2]
-            if t_w != (0.0, 0.0, 0.0):
-                r = quat_to_rot((x[6], x[7], x[8], x[9]))  # body torque = R^T world torque
-                tx += r[0] * t_w[0] + r[3] * t_w[1] + r[6] * t_w[2]
-                ty += r[1] * t_w[0] + r[4] * t_w[1] + r[7] * t_w[2]
-                tz += r[2] * t_w[0] + r[5] * t_w[1] + r[8] * t_w[2]
-        self._fb = (fx, fy, fz)
-
-        # external forces (world)
-        if self._tether_n > 0.0:
-            dx, dy, dz = (self._anchor[0] - x[0], self._anchor[1] - x[1],
-                          self._anchor[2] - x[2])
-            n = math.sqrt(dx * dx + dy * dy + dz * dz)
-            if n > 1e-9:
-                ex, ey, ez = (ex + self._tether_n * dx / n, ey + self._tether_n * dy / n,
-                              ez + self._tether_n * dz / n)
-        if self._ou_rms > 0.0:
-            phi = math.exp(-h / self._ou_tau)
-            s = self._ou_rms * math.sqrt(1.0 - phi * phi)
-            ou, nrm = self._ou, self._normal
-            ou[0] = phi * ou[0] + s * nrm()
-            ou[1] = phi * ou[1] + s * nrm()
-            ou[2] = phi * ou[2] + s * nrm()
-            ex, ey, ez = ex + ou[0], ey + ou[1], ez + ou[2]
-        self._fext = (ex, ey, ez)
-
-        m, g = self._m, self._g
-        if self.landed:
-            r = quat_to_rot((x[6], x[7], x[8], x[9]))
-            lift = r[6] * fx + r[7] * fy + r[8] * fz + ez - m * g
-            if lift <= 0.0:
-                self._advance_time(h)
-                return
-            self.landed = False
-
-        jx, jy, jz = self._j
-        j_full, ji = self._j_full, self._j_inv
-        inv_m = 1.0 / m
-
-        def deriv(s: list[float]) -> list[float]:
-            qw, qx, qy, qz = s[6], s[7], s[8], s[9]
-            wx, wy, wz = s[10], s[11], s[12]
-            # R (body -> world) applied to F_b
-            xx, yy, zz = qx * qx, qy * qy, qz * qz
-            xy, xz, yz = qx * qy, qx * qz, qy * qz
-            wqx, wqy, wqz = qw * qx, qw * qy, qw * qz
-            ax_ = ((1.0 - 2.0 * (yy + zz)) * fx + 2.0 * (xy - wqz) * fy + 2.0 * (xz + wqy) * fz
-                   + ex) * inv_m
-            ay_ = (2.0 * (xy + wqz) * fx + (1.0 - 2.0 * (xx + zz)) * fy + 2.0 * (yz - wqx) * fz
-                   + ey) * inv_m
-            az_ = (2.0 * (xz - wqy) * fx + 2.0 * (yz + wqx) * fy + (1.0 - 2.0 * (xx + yy)) * fz
-                   + ez) * inv_m - g
-            if j_full is None:
-                lx, ly, lz = jx * wx + hx, jy * wy + hy, jz * wz + hz
-                dwx = (tx - (wy * lz - wz * ly)) / jx
-                dwy = (ty - (wz * lx - wx * lz)) / jy
-                dwz = (tz - (wx * ly - wy * lx)) / jz
-            else:  # J w' = tau - w x (J w + h), J full
-                j = j_full
-                lx = j[0] * wx + j[1] * wy + j[2] * wz + hx
-                ly = j[3] * wx + j[4] * wy + j[5] * wz + hy
-                lz = j[6] * wx + j[7] * wy + j[8] * wz + hz
-                rx_ = tx - (wy * lz - wz * ly)
-                ry_ = ty - (wz * lx - wx * lz)
-                rz_ = tz - (wx * ly - wy * lx)
-                dwx = ji[0] * rx_ + ji[1] * ry_ + ji[2] * rz_
-                dwy = ji[3] * rx_ + ji[4] * ry_ + ji[5] * rz_
-                dwz = ji[6] * rx_ + ji[7] * ry_ + ji[8] * rz_
-            return [s[3], s[4], s[5], ax_, ay_, az_,
-                    0.5 * (-qx * wx - qy * wy - qz * wz),
-                    0.5 * (qw * wx + qy * wz - qz * wy),
-                    0.5 * (qw * wy - qx * wz + qz * wx),
-                    0.5 * (qw * wz + qx * wy - qy * wx),
-                    dwx, dwy, dwz]
-
-        hh = 0.5 * h
-        k1 = deriv(x)
-        k2 = deriv([a + hh * b for a, b in zip(x, k1, strict=True)])
-        k3 = deriv([a + hh * b for a, b in zip(x, k2, strict=True)])
-        k4 = deriv([a + h * b for a, b in zip(x, k3, strict=True)])
-        h6 = h / 6.0
-        x = [a + h6 * (b1 + 2.0 * (b2 + b3) + b4)
-             for a, b1, b2, b3, b4 in zip(x, k1, k2, k3, k4, strict=True)]
-        qn = 1.0 / math.sqrt(x[6] * x[6] + x[7] * x[7] + x[8] * x[8] + x[9] * x[9])
-        x[6] *= qn
-        x[7] *= qn
-        x[8] *= qn
-        x[9] *= qn
-        rc = self._r_com((x[6], x[7], x[8], x[9]))
-        if x[2] - rc[2] < self.ground_height_m:  # O_B below its resting height
-            self.touchdown_speeds_m_s.append(-x[5])
-            q = _yaw_only((x[6], x[7], x[8], x[9]))
-            rc0 = self._r_com(q)
-            x = [x[0] - rc[0] + rc0[0], x[1] - rc[1] + rc0[1], self.ground_height_m + rc0[2],
-                 0.0, 0.0, 0.0, q[0], q[1], q[2], q[3], 0.0, 0.0, 0.0]
-            self.landed = True
-        self._x = x
-        self._advance_time(h)
-
-    def _advance_time(self, h: float) -> None:
-        self._t += h
-        x = self._x
-        self.mocap.maybe_capture(self._t, self._origin_w_m(), (x[6], x[7], x[8], x[9]))
+    # -- physics (sim_backend.physics) --------------------------------------------------------
+    def _physics(self, h: float, n: int) -> None:
+        """``n`` RK4 substeps of ``h`` seconds, then the MoCap captures and touchdowns they
+        brought."""
+        if self._ou_on:  # the OU force draws three standard normals per substep
+            need = 3 * n
+            if self._k_normal + need > len(self._normals):
+                fresh = [self._normals[self._k_normal:]]
+                have = len(fresh[0])
+                while have < need:  # the same sequence as blocks handed out one by one
+                    fresh.append(self._normal_rng.standard_normal(NORMAL_BLOCK))
+                    have += NORMAL_BLOCK
+                self._normals = np.concatenate(fresh)
+                self._k_normal = 0
+        if len(self._out) < n:
+            self._out = np.empty((n, phy.N_OUT))
+        if len(self._wrenches) < n:
+            self._wrenches = np.zeros((n, phy.N_WRENCH))
+        schedule = self.schedule
+        scheduled = schedule.t0_s is not None and bool(schedule.events)
+        if scheduled:
+            wrenches, t = self._wrenches, self._t
+            for k in range(n):
+                wrench = schedule.wrench(t)
+                if wrench is None:
+                    wrenches[k, phy.W_ON] = 0.0
+                else:
+                    (ex, ey, ez), f_b, t_w, t_b = wrench
+                    wrenches[k] = (1.0, ex, ey, ez, *f_b, *t_w, *t_b)
+                t += h
+        mocap = self.mocap
+        w = self._w_cmd
+        events = phy.advance(self._s, self._p, h, n, self._normals, self._k_normal,
+                             self._wrenches, mocap.next_capture_s, mocap.period_s, self._out,
+                             w[0], w[1], w[2], w[3], w[4], w[5], self._servo_goal)
+        if scheduled:
+            self._wrenches[:n, phy.W_ON] = 0.0
+        if self._ou_on:
+            self._k_normal += 3 * n
+        self._read_back()
+        if events:
+            for row in self._out[:n].tolist():
+                if row[phy.O_CAPTURE] != 0.0:
+                    mocap.maybe_capture(row[phy.O_T], (row[1], row[2], row[3]),
+                                        (row[4], row[5], row[6], row[7]))
+                if not math.isnan(row[phy.O_TOUCHDOWN]):
+                    self.touchdown_speeds_m_s.append(row[phy.O_TOUCHDOWN])
 
     # -- fast in-process API -----------------------------------------------------------------
     def state(self) -> VehicleState:
@@ -406,19 +327,13 @@ class FastHexSimulator:
     def specific_force_b(self) -> Vec3:
         """What an ideal accelerometer reads (m/s^2, body): (F_b + R^T F_ext) / m, or the
         ground's reaction when resting."""
-        x = self._x
-        r = quat_to_rot((x[6], x[7], x[8], x[9]))
-        if self.landed:
-            g = self._g
-            return (r[6] * g, r[7] * g, r[8] * g)
-        fb, fe, m = self._fb, self._fext, self._m
-        return ((fb[0] + r[0] * fe[0] + r[3] * fe[1] + r[6] * fe[2]) / m,
-                (fb[1] + r[1] * fe[0] + r[4] * fe[1] + r[7] * fe[2]) / m,
-                (fb[2] + r[2] * fe[0] + r[5] * fe[1] + r[8] * fe[2]) / m)
+        v = self._r
+        return (v[phy.S_SPECIFIC], v[phy.S_SPECIFIC + 1], v[phy.S_SPECIFIC + 2])
 
     def external_force_w_n(self) -> Vec3:
         """Tether + OU force of the last step (world, N)."""
-        return self._fext
+        v = self._r
+        return (v[phy.S_FEXT], v[phy.S_FEXT + 1], v[phy.S_FEXT + 2])
 
     def poll_mocap(self) -> list[PoseReading]:
         """MoCap frames that have arrived by now (capture-time stamped)."""
@@ -432,25 +347,27 @@ class FastHexSimulator:
         if dt_s <= 0.0:
             return
         n = max(1, math.ceil(dt_s / self._dt - 1e-9))
-        h = dt_s / n
-        for _ in range(n):
-            self._substep(h)
+        self._physics(dt_s / n, n)
 
     def command_rotor_speeds_hz(self, speeds_hz: Sequence[float]) -> None:
         if len(speeds_hz) != N_ROTORS:
             raise ValueError(f"expected {N_ROTORS} rotor speeds, got {len(speeds_hz)}")
-        self._w_cmd = [max(0.0, float(s)) for s in speeds_hz]
+        # NaN or negative: stopped
+        self._w_cmd = tuple([float(s) if s > 0.0 else 0.0 for s in speeds_hz])
 
     def rotor_speeds_hz(self) -> tuple[float, ...]:
-        return tuple(self._w)
+        return tuple(self._r[phy.S_W:phy.S_W + N_ROTORS])
 
     def motor_currents_a(self) -> tuple[float, ...]:
         # ~0.2 A idle, ~8 A at 100 Hz for a 12" propeller on an MK3638: cubic in speed
-        return tuple(0.2 * (s > 0.5) + 8.0 * (s / 100.0) ** 3 for s in self._w)
+        return tuple(0.2 * (s > 0.5) + 8.0 * (s / 100.0) ** 3
+                     for s in self._r[phy.S_W:phy.S_W + N_ROTORS])
 
     def read_imu(self) -> ImuReading:
-        x = self._x
-        return self.imu.sample(self._t, (x[10], x[11], x[12]), self.specific_force_b())
+        v = self._r
+        w = phy.S_X + 10
+        return self.imu.sample(self._t, (v[w], v[w + 1], v[w + 2]),
+                               (v[phy.S_SPECIFIC], v[phy.S_SPECIFIC + 1], v[phy.S_SPECIFIC + 2]))
 
     def scale_rotor_thrust(self, scale: float, rotor: int | None = None) -> None:
         """Fault hook: every rotor's thrust coefficient, or only rotor ``rotor`` (1..6), times
@@ -469,10 +386,10 @@ class FastHexSimulator:
         ``d_omega_b_rad_s`` at once. No effect while resting on the ground."""
         if self.landed:
             return
-        x = self._x
-        x[10] += d_omega_b_rad_s[0]
-        x[11] += d_omega_b_rad_s[1]
-        x[12] += d_omega_b_rad_s[2]
+        w = phy.S_X + 10
+        self._s[w:w + 3] += d_omega_b_rad_s
+        phy.specific_force(self._s, self._p)
+        self._read_back()
 
     def command_tilt_rad(self, tilt_rad: float) -> None:
         if self._tilt_frozen:
@@ -480,7 +397,7 @@ class FastHexSimulator:
         self._servo_goal = min(max(float(tilt_rad), 0.0), self._tilt_max)
 
     def tilt_rad(self) -> float:
-        return self._servo
+        return self._r[phy.S_SERVO]
 
     def true_pose(self) -> PoseReading:
         x = self._x

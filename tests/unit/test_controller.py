@@ -9,7 +9,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.geometric import GeometricController, bisect_tilt, desired_rotation
+from controller import compiled
+from controller.geometric import (
+    GeometricController,
+    _control_law_compiled,
+    bisect_tilt,
+    control_law,
+    desired_rotation,
+)
+from controller.missions import Mission
+from controller.pipeline import FlightComputer
 from controller.reference import (
     IDENTITY_Q,
     ZERO3,
@@ -19,7 +28,7 @@ from controller.reference import (
     quat_from_euler_zyx,
     quat_to_rot,
 )
-from groundstation.configs import load_vehicle
+from groundstation.configs import load_mission, load_vehicle
 
 PARAMS = load_vehicle("fasthex")
 A30 = math.radians(30.0)
@@ -214,3 +223,50 @@ def test_that_the_feedforward_mode_damps_the_rate_relative_to_the_reference() ->
     # Assert: the paper's law damps the whole rate (-K_w w), the feed-forward mode nothing
     assert with_ff.u_tau_b_n_m == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
     assert paper.u_tau_b_n_m[0] == pytest.approx(-1.5 * 0.5)
+
+
+def test_that_a_warmed_up_flight_computer_steps_first_on_built_caches() -> None:
+    # Fixture: the ground station warms the computer before arming; the first step at
+    # TAKEOFF must not build the wrench map or the thrust axes (~1 ms of numpy and JIT)
+    mission = Mission(load_mission("exp1-hover-tilt-steps"))
+    sut = FlightComputer(PARAMS, mission)
+    alpha = sut.planner.alpha_cmd_rad
+    state = VehicleState(mission.start_pos_w_m, ZERO3, IDENTITY_Q, ZERO3)
+    # Test
+    sut.warm_up()
+    built = sut.controller.mapper.recomputations
+    axes_alpha = sut._axes_alpha
+    stepped = sut.controller.memory.last_t_s
+    sut.step(0.0, state, alpha)
+    sut.thrust_force_b(alpha, (1.0,) * 6)
+    # Assert: both caches were there before the step, and the step reused them
+    assert built == 1
+    assert axes_alpha == alpha
+    assert sut.controller.mapper.recomputations == 1
+    assert stepped is None  # the warm-up stepped nothing
+
+
+_FEEDFORWARD_CONTROLLER = GeometricController(dataclasses.replace(
+    PARAMS, controller=dataclasses.replace(PARAMS.controller, attitude_feedforward=True,
+                                           force_feedforward=True)))
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.floats(-2.0, 2.0), min_size=29, max_size=29),
+       st.floats(0.0, 20.0), st.booleans(), st.floats(0.0, 0.6))
+def test_that_the_compiled_control_law_equals_its_python_source(
+        values: list[float], r_xy: float, feed: bool, alpha: float) -> None:
+    # Fixture: any state and reference (attitudes normalised), any bound and tilt
+    if not compiled.AVAILABLE:
+        pytest.skip("numba not installed: the Python source is all there is")
+    sut = _FEEDFORWARD_CONTROLLER
+    v = list(values)
+    for i in (6, 22):
+        n = math.sqrt(sum(x * x for x in v[i:i + 4])) or 1.0
+        v[i:i + 4] = [x / n for x in v[i:i + 4]] if n != 1.0 else [1.0, 0.0, 0.0, 0.0]
+    rest = (r_xy, feed, 0.3, -0.2, 0.1, 0.01, -0.02, 0.03, 0.001, 0.002, -0.003)
+    # Test
+    got = _control_law_compiled(sut._k, sut.mapper.rows_array(alpha), 20, 0.002, *v, *rest)
+    want = control_law(tuple(sut._k.tolist()), sut.mapper.rows(alpha), 20, 0.002, *v, *rest)
+    # Assert: the same operations in the same order, the same numbers
+    assert got == want

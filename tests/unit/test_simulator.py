@@ -10,6 +10,7 @@ import pytest
 
 from controller.model import VehicleModel, cardan_tilts_rad
 from groundstation.configs import load_disturbances, load_vehicle
+from sim_backend import physics
 from sim_backend.simulator import FastHexSimulator, cardan_tilts
 from sim_backend.vehicle import EmulatedVehicle
 
@@ -198,3 +199,28 @@ def test_that_imu_noise_matches_the_noise_density() -> None:
     # Assert: std = density * sqrt(rate / 2); mean = the constant bias
     assert np.std(g, axis=0) == pytest.approx([8.7e-4 * math.sqrt(250.0)] * 3, rel=0.05)
     assert np.mean(g, axis=0) == pytest.approx(sut.imu.gyro_bias_rad_s, abs=1e-3)
+
+
+def test_that_the_jitted_physics_equals_its_python_source() -> None:
+    # Fixture: flying, the servo moving, every disturbance on; the plain-Python functions are
+    # what runs where numba is absent
+    if not physics.AVAILABLE:
+        pytest.skip("numba not installed: the Python source is all there is")
+    sim = FastHexSimulator(PARAMS, CALIBRATED, seed=4)
+    sim.command_rotor_speeds_hz([80.0] * 6)
+    sim.advance(0.5)
+    rng = np.random.default_rng(1)
+    normals, wrenches = rng.standard_normal(30), np.zeros((10, physics.N_WRENCH))
+    wrenches[3:] = [1.0, 0.5, -0.2, 0.1, 0.3, 0.0, -0.1, 0.02, 0.0, 0.01, 0.0, 0.03, -0.01]
+    states, outs = [], []
+    advance_py = physics.advance.py_func  # type: ignore[attr-defined]
+    for fn in (physics.advance, advance_py):
+        s, out = sim._s.copy(), np.empty((10, physics.N_OUT))
+        # Test
+        fn(s, sim._p, 1e-3, 10, normals, 0, wrenches, 0.5, 0.01, out, 85.0, 80.0, 75.0, 80.0,
+           85.0, 90.0, math.radians(20.0))
+        states.append(s)
+        outs.append(out)
+    # Assert: the same operations in the same order
+    np.testing.assert_array_equal(states[0], states[1])
+    np.testing.assert_array_equal(outs[0], outs[1])

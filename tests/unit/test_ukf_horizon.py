@@ -80,3 +80,17 @@ def test_that_the_output_predictor_gives_the_replaying_filters_estimate(
     assert dp.max() < 10e-6
     assert datt.max() < 1e-3
     assert np.sqrt(np.mean(err ** 2)) > 1e-4  # (the comparison is not between two zeros)
+
+
+@pytest.mark.parametrize("delay_s", [0.0, 0.02])
+def test_that_the_plain_float_output_state_is_the_estimates(delay_s: float) -> None:
+    # Fixture: with a horizon the outputs come from the predictor, without it from the filter
+    _, _, est, _ = fly(EstimatorConfig(max_fusion_delay_s=delay_s), FIXED_10MS)
+    # Test
+    pos, vel, q, omega = est.output_state()
+    e = est.estimate()
+    # Assert: the same numbers, as Python floats
+    assert (pos, vel, q, omega) == (tuple(e.pos_w_m.tolist()), tuple(e.vel_w_m_s.tolist()),
+                                    tuple(e.q_wb.tolist()), tuple(e.omega_b_rad_s.tolist()))
+    assert est.force_ext_w_n() == tuple(e.force_ext_w_n.tolist())
+    assert all(type(v) is float for v in (*pos, *vel, *q, *omega))

@@ -7,8 +7,9 @@ import math
 import numpy as np
 import pytest
 
+from controller import compiled
 from controller.model import VehicleModel
-from controller.wrench import WrenchMapper, tikhonov_gamma
+from controller.wrench import WrenchMapper, tikhonov_gamma, tikhonov_map
 from groundstation.configs import load_vehicle
 
 MODEL = VehicleModel(load_vehicle("fasthex"))
@@ -60,3 +61,47 @@ def test_that_the_map_is_computed_once_per_alpha() -> None:
         np.linalg.solve(MODEL.allocation(0.31).T @ MODEL.allocation(0.31)
                         + tikhonov_gamma(0.31, 4e-6, 0.02) * np.eye(6),
                         MODEL.allocation(0.31).T))
+
+
+@pytest.mark.parametrize("vehicle", ["fasthex", "fasthex-mini"])
+def test_that_the_compiled_map_equals_the_numpy_one_up_to_rounding(vehicle: str) -> None:
+    # Fixture
+    if not compiled.AVAILABLE:
+        pytest.skip("numba not installed: the numpy map is all there is")
+    model = VehicleModel(load_vehicle(vehicle))
+    mapper = WrenchMapper(model)
+    work, out = np.empty((6, 6)), np.empty((6, 6))
+    for alpha in np.linspace(-0.1, math.radians(40.0), 50):
+        gamma = tikhonov_gamma(alpha, mapper.k1, mapper.k2_rad)
+        # Test
+        compiled.wrench_map(alpha, gamma, *mapper._geometry, work, out)
+        # Assert: the same allocation; the solve rounds otherwise (cond ~ 1e4 near alpha = 0)
+        np.testing.assert_array_equal(work, model.allocation(alpha))
+        want = tikhonov_map(model.allocation(alpha), gamma)
+        np.testing.assert_allclose(out, want, rtol=0.0, atol=1e-10 * np.abs(want).max())
+
+
+def test_that_the_jitted_map_equals_its_python_source() -> None:
+    # Fixture: the plain-Python function is what runs where numba is absent
+    if not compiled.AVAILABLE:
+        pytest.skip("numba not installed: the Python source is all there is")
+    mapper = WrenchMapper(MODEL)
+    outs = []
+    for fn in (compiled.wrench_map, compiled.wrench_map.py_func):  # type: ignore[attr-defined]
+        work, out = np.empty((6, 6)), np.empty((6, 6))
+        # Test
+        fn(0.3, 1e-5, *mapper._geometry, work, out)
+        outs.append(out)
+    # Assert
+    np.testing.assert_allclose(outs[0], outs[1], rtol=0.0, atol=1e-12)
+
+
+def test_that_a_warm_up_builds_the_map_the_first_tick_uses() -> None:
+    # Fixture
+    sut = WrenchMapper(MODEL)
+    alpha = math.radians(12.0)
+    # Test
+    sut.warm_up(alpha)
+    sut.thrusts_n(alpha, (0.0, 0.0, 30.0), (0.0, 0.0, 0.0))
+    # Assert: computed once, before the tick
+    assert sut.recomputations == 1
