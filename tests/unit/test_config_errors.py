@@ -121,7 +121,8 @@ def test_that_yaml_exponents_without_a_dot_are_numbers(tmp_path: Path) -> None:
 def test_that_an_unknown_vehicle_name_lists_the_shipped_ones() -> None:
     with pytest.raises(ConfigError) as info:
         load_vehicle("nope")
-    assert str(info.value) == "nope: no such vehicle; shipped vehicles: fasthex, fasthex-gust-recovery, fasthex-mini"
+    assert str(info.value) == ("nope: no such vehicle; shipped vehicles: fasthex, "
+                               "fasthex-gust-recovery, fasthex-mini")
 
 
 def test_that_the_cli_prints_one_line_and_exits_2(tmp_path: Path,

@@ -86,7 +86,8 @@ def test_that_errors_in_a_referenced_vehicle_file_name_that_file(tmp_path: Path)
 
 
 @pytest.mark.parametrize(("key", "ref", "message"), [
-    ("vehicle", "fasthex-maxi", "no such vehicle 'fasthex-maxi' (shipped: fasthex, fasthex-gust-recovery, fasthex-mini)"),
+    ("vehicle", "fasthex-maxi",
+     "no such vehicle 'fasthex-maxi' (shipped: fasthex, fasthex-gust-recovery, fasthex-mini)"),
     ("disturbances", "windy", "no such disturbance 'windy' (shipped: ideal, paper-calibrated)"),
     ("mission", "mine.yaml", "no such file 'mine.yaml' (relative to the session file)"),
 ])
