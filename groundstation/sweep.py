@@ -46,6 +46,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, TextIO
 
 from groundstation.campaign import RunSpec, execute_run
+from groundstation.signals import stop_signals_blocked
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -71,7 +72,8 @@ class Runner(Protocol):
 
     def run(self, runs: Iterable[RunSpec]) -> Iterator[dict[str, Any]]: ...
 
-    def close(self) -> None: ...
+    def close(self) -> None:
+        """Stop every process the runner started; a second call does nothing."""
 
 
 class SerialRunner:
@@ -131,7 +133,20 @@ class ProcessPoolRunner:
         self._ctx.set_forkserver_preload(["groundstation.campaign", "groundstation.simulation",
                                           "sim_backend.closed_loop", "controller.pipeline"])
         self._procs: dict[int, tuple[Any, Connection]] = {}
+        self._busy: dict[int, RunSpec] = {}  # worker -> the run it flies
         self._next_id = 0
+        # The terminal sends Ctrl-C to the whole process group, `timeout` its SIGTERM too:
+        # ending the workers is this process's job (close()). The forkserver and every worker
+        # it forks start with the stop signals held; a worker ignores them at once, and the
+        # forkserver keeps them held (it ignores only SIGINT itself).
+        _start_resource_tracker()
+        try:
+            with stop_signals_blocked():
+                while len(self._procs) < self.workers:
+                    self._start()
+        except BaseException:  # an interrupt the block deferred: no worker outlives it
+            self.close()
+            raise
 
     def _start(self) -> int:
         parent, child = self._ctx.Pipe()
@@ -146,8 +161,8 @@ class ProcessPoolRunner:
 
     def run(self, runs: Iterable[RunSpec]) -> Iterator[dict[str, Any]]:
         pending = iter(runs)
-        busy: dict[int, RunSpec] = {}
-        idle: list[int] = []
+        busy = self._busy
+        idle = [wid for wid in self._procs if wid not in busy]
         while len(self._procs) < self.workers:
             idle.append(self._start())
         exhausted = False
@@ -188,9 +203,15 @@ class ProcessPoolRunner:
                 yield row
 
     def close(self) -> None:
-        for _proc, conn in self._procs.values():
+        """End every worker: an idle one is told to stop; one still flying a run (the sweep
+        was interrupted, its run is dropped) is killed, since it ignores SIGINT and SIGTERM."""
+        for wid, (proc, conn) in self._procs.items():
+            if wid in self._busy:
+                proc.kill()
+                continue
             with contextlib.suppress(OSError, BrokenPipeError):
                 conn.send(None)
+        self._busy.clear()
         deadline = time.monotonic() + 5.0
         for proc, conn in self._procs.values():
             proc.join(timeout=max(0.0, deadline - time.monotonic()))
@@ -199,6 +220,17 @@ class ProcessPoolRunner:
                 proc.join(timeout=2.0)
             conn.close()
         self._procs.clear()
+
+
+def _start_resource_tracker() -> None:
+    """Start multiprocessing's resource tracker (a child of ours) on its own, before the
+    processes that need it: starting it unblocks SIGINT and SIGTERM in the calling thread
+    (CPython holds them only while it spawns the tracker, which ignores them), which would
+    let them through to the processes started after it in the same block. Started inside a
+    block of its own, it keeps SIGHUP held."""
+    from multiprocessing import resource_tracker
+    with stop_signals_blocked():
+        resource_tracker.ensure_running()
 
 
 def _exit_text(code: int | None) -> str:
@@ -494,8 +526,10 @@ def sweep(runs: list[RunSpec], table: ResultsTable, runner: Runner, *,
             if on_row is not None:
                 on_row(row)
     finally:
-        if progress is not None:
-            progress.finish()
-        runner.close()
-        table.consolidate()
+        try:
+            if progress is not None:
+                progress.finish()
+            runner.close()
+        finally:  # the rows are saved even if a second Ctrl-C cuts the runner's close short
+            table.consolidate()
     return flown, skipped

@@ -64,7 +64,7 @@ def _sweep(args: argparse.Namespace) -> int:
     from groundstation.campaign import load_campaign
     from groundstation.cli import UserError, version
     from groundstation.signals import stop_signals_blocked
-    from groundstation.sweep import Progress, ResultsTable, make_runner, sweep
+    from groundstation.sweep import Progress, ResultsTable, Runner, make_runner, sweep
 
     if args.workers is not None and args.workers < 1:
         raise UserError(f"--workers must be at least 1, got {args.workers}")
@@ -105,6 +105,7 @@ def _sweep(args: argparse.Namespace) -> int:
 
     for sig in previous:
         signal.signal(sig, interrupt)
+    runner: Runner | None = None
     try:
         with stop_signals_blocked():  # worker processes start with the stop signals held
             runner = make_runner(args.workers, args.scheduler)
@@ -121,6 +122,8 @@ def _sweep(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise UserError(f"sweep: {exc}") from None
     finally:
+        if runner is not None:  # sweep() closed it, unless the interrupt came before it ran
+            runner.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     verdicts: dict[str, int] = {}
