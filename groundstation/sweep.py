@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import math
 import multiprocessing as mp
 import os
@@ -256,16 +257,32 @@ class DaskRunner:
             raise RuntimeError("dask.distributed is not installed (pip install "
                                "'dask[distributed]')") from None
         self._cluster: Any = None
-        if scheduler == "local":
-            self._cluster = LocalCluster(n_workers=workers, threads_per_worker=1,
-                                         processes=True, dashboard_address=None,
-                                         silence_logs=40)
-            self.client = Client(self._cluster)
-            self.description = f"Dask LocalCluster, {workers} worker processes"
-        else:
-            self.client = Client(scheduler, timeout="20s")
-            n = len(self.client.scheduler_info().get("workers", {}))
-            self.description = f"Dask scheduler {scheduler}, {n} workers now"
+        self.client: Any = None
+        # Dask logs its cluster's life at INFO and its teardown's broken connections as
+        # tracebacks: a sweep shows its own progress, and Dask's warnings only with -v
+        self._log_levels = _dask_log_levels(logging.ERROR if scheduler == "local"
+                                            else logging.WARNING)
+        try:
+            if scheduler == "local":
+                # the worker processes start with the stop signals held and never unblock
+                # them: the terminal's Ctrl-C to the process group is this process's to
+                # handle, and close() ends the cluster
+                _start_resource_tracker()
+                with stop_signals_blocked():
+                    self._cluster = LocalCluster(
+                        n_workers=workers, threads_per_worker=1, processes=True,
+                        dashboard_address=None, silence_logs=logging.CRITICAL,
+                        # no dashboard; its HTTP server on a free port of the loopback
+                        scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
+                    self.client = Client(self._cluster)
+                self.description = f"Dask LocalCluster, {workers} worker processes"
+            else:
+                self.client = Client(scheduler, timeout="20s")
+                n = len(self.client.scheduler_info().get("workers", {}))
+                self.description = f"Dask scheduler {scheduler}, {n} workers now"
+        except BaseException:  # no scheduler there, or an interrupt the block deferred
+            self.close()
+            raise
 
     def run(self, runs: Iterable[RunSpec]) -> Iterator[dict[str, Any]]:
         from distributed import as_completed
@@ -286,11 +303,42 @@ class DaskRunner:
             yield row
 
     def close(self) -> None:
-        with contextlib.suppress(Exception):
-            self.client.close()
-        if self._cluster is not None:
-            with contextlib.suppress(Exception):
-                self._cluster.close()
+        """Close the client (its runs are cancelled) and the cluster we started; what Dask
+        logs while its connections close under cancelled runs is not shown."""
+        during_close = _dask_log_levels(logging.CRITICAL + 1)
+        try:
+            if self.client is not None:
+                with contextlib.suppress(Exception):
+                    self.client.close()
+            if self._cluster is not None:
+                with contextlib.suppress(Exception):
+                    self._cluster.close()
+                self._cluster = None
+        finally:
+            _restore_log_levels(during_close)
+            _restore_log_levels(self._log_levels)
+            self._log_levels = {}
+
+
+def _dask_log_levels(level: int) -> dict[str, int]:
+    """Raise Dask's loggers (``distributed`` and those below it with a level of their own)
+    to at least ``level``, unless the user asked for INFO (``-v``); their previous levels."""
+    if logging.getLogger().isEnabledFor(logging.INFO) and level <= logging.CRITICAL:
+        return {}
+    names = ["distributed", *(name for name, lg in logging.root.manager.loggerDict.items()
+                              if name.startswith("distributed.")
+                              and isinstance(lg, logging.Logger) and lg.level)]
+    previous = {}
+    for name in names:
+        logger = logging.getLogger(name)
+        previous[name] = logger.level
+        logger.setLevel(max(level, logger.level))
+    return previous
+
+
+def _restore_log_levels(levels: dict[str, int]) -> None:
+    for name, level in levels.items():
+        logging.getLogger(name).setLevel(level)
 
 
 def make_runner(workers: int | None, scheduler: str | None,
