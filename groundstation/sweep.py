@@ -505,6 +505,7 @@ class Progress:
         self.t0 = time.monotonic()
         self._last_print = -math.inf
         self._last_decile = -1
+        self._line_open = False  # a line drawn on the terminal, not ended yet
 
     def update(self, row: dict[str, Any]) -> None:
         self.done += 1
@@ -535,14 +536,17 @@ class Progress:
     def _write(self, text: str) -> None:
         if self.tty:
             self.stream.write("\r\x1b[2K" + text)
+            self._line_open = True
         else:
             self.stream.write(text + "\n")
         self.stream.flush()
 
     def finish(self) -> None:
-        if self.tty:
+        """End the line drawn on the terminal (what is printed next starts a line)."""
+        if self._line_open:
             self.stream.write("\n")
             self.stream.flush()
+            self._line_open = False
 
 
 def _hms(seconds: float) -> str:

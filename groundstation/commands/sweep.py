@@ -115,7 +115,7 @@ def _sweep(args: argparse.Namespace) -> int:
                                progress=progress)
     except KeyboardInterrupt:
         have = len(table.rows)
-        print(f"\nfasthex: sweep interrupted: {sum(1 for r in runs if r.run_id in table.rows)}"
+        print(f"fasthex: sweep interrupted: {sum(1 for r in runs if r.run_id in table.rows)}"
               f" of {len(runs)} runs are in {table_path} ({have} rows); run the same command "
               "again to fly the rest", file=sys.stderr)
         return 130
