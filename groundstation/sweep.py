@@ -58,6 +58,9 @@ IDENTITY_COLUMNS = ("run_id", "run_index", "campaign", "seed", "scenario")
 TEXT_COLUMNS = ("verdict", "crash_reason", "crash_kind", "error", "fasthex_version", "mission",
                 "vehicle", "preset", "estimator")
 FLUSH_INTERVAL_S = 2.0
+#: what a run imports (execute_run), loaded once by the forkserver the pool's workers fork from
+FLIGHT_MODULES = ("groundstation.campaign", "groundstation.simulation",
+                  "groundstation.session_config", "sim_backend.closed_loop", "controller.pipeline")
 METADATA_KEY = b"fasthex.sweep"
 
 
@@ -131,8 +134,7 @@ class ProcessPoolRunner:
         # forkserver: a clean process (no threads of ours) that has imported the flight code
         # once; every worker, and the replacement of one that died, is a cheap fork of it
         self._ctx = mp.get_context("forkserver")
-        self._ctx.set_forkserver_preload(["groundstation.campaign", "groundstation.simulation",
-                                          "sim_backend.closed_loop", "controller.pipeline"])
+        self._ctx.set_forkserver_preload(list(FLIGHT_MODULES))
         self._procs: dict[int, tuple[Any, Connection]] = {}
         self._busy: dict[int, RunSpec] = {}  # worker -> the run it flies
         self._next_id = 0
