@@ -536,19 +536,22 @@ class Progress:
                 f"{_hms(elapsed)}, ETA {_hms(eta)}")
 
     def _write(self, text: str) -> None:
-        if self.tty:
-            self.stream.write("\r\x1b[2K" + text)
-            self._line_open = True
-        else:
-            self.stream.write(text + "\n")
-        self.stream.flush()
+        # a terminal that went away (SIGHUP) does not stop the sweep, nor its clean end
+        with contextlib.suppress(OSError):
+            if self.tty:
+                self.stream.write("\r\x1b[2K" + text)
+                self._line_open = True
+            else:
+                self.stream.write(text + "\n")
+            self.stream.flush()
 
     def finish(self) -> None:
         """End the line drawn on the terminal (what is printed next starts a line)."""
         if self._line_open:
-            self.stream.write("\n")
-            self.stream.flush()
             self._line_open = False
+            with contextlib.suppress(OSError):
+                self.stream.write("\n")
+                self.stream.flush()
 
 
 def _hms(seconds: float) -> str:

@@ -16,6 +16,7 @@ done so far are in the table), 2 for a problem with the campaign file or the opt
 from __future__ import annotations
 
 import argparse
+import contextlib
 import signal
 import sys
 from pathlib import Path
@@ -115,9 +116,11 @@ def _sweep(args: argparse.Namespace) -> int:
                                progress=progress)
     except KeyboardInterrupt:
         have = len(table.rows)
-        print(f"fasthex: sweep interrupted: {sum(1 for r in runs if r.run_id in table.rows)}"
-              f" of {len(runs)} runs are in {table_path} ({have} rows); run the same command "
-              "again to fly the rest", file=sys.stderr)
+        with contextlib.suppress(OSError):  # SIGHUP: the terminal is gone
+            print(f"fasthex: sweep interrupted: "
+                  f"{sum(1 for r in runs if r.run_id in table.rows)} of {len(runs)} runs are "
+                  f"in {table_path} ({have} rows); run the same command again to fly the rest",
+                  file=sys.stderr)
         return 130
     except OSError as exc:
         raise UserError(f"sweep: {exc}") from None
