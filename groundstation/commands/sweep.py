@@ -9,8 +9,10 @@ a cluster): :mod:`groundstation.sweep`. The table (Parquet, default ``NAME.parqu
 campaign's ``name``) is resumable: run the same command again after a Ctrl-C, a ``kill`` or a
 crash and only the missing runs fly.
 
-Exit codes: 0 when every run has a row (whatever its verdict), 130 when interrupted (the rows
-done so far are in the table), 2 for a problem with the campaign file or the options.
+Exit codes: 0 when every run has a row (whatever its verdict), 130 when interrupted by
+Ctrl-C, SIGTERM or the terminal closing (the rows done so far are in the table; the runs in
+flight are dropped and every worker process is ended), 2 for a problem with the campaign file
+or the options.
 """
 
 from __future__ import annotations
