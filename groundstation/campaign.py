@@ -91,6 +91,9 @@ class Parameter:
             from config.schema import ConfigValueError
             if not lo <= hi:
                 raise ConfigValueError("range", f"expected lo <= hi, got [{lo:g}, {hi:g}]")
+            if not math.isfinite(hi - lo):  # its points would be inf and NaN
+                raise ConfigValueError("range", f"expected hi - lo to be a finite number, got "
+                                       f"[{lo:g}, {hi:g}]")
             if self.log and lo <= 0.0:
                 raise ConfigValueError("range", "a log range needs lo > 0")
 

@@ -49,12 +49,13 @@ def stop_signals_blocked() -> Iterator[None]:
     """Start child processes inside this block: they inherit a mask that holds the stop
     signals back until they ignore them (a spawned interpreter takes a second or more to get
     there, and a Ctrl-C in that window would kill it). The parent only defers them: a signal
-    that arrives meanwhile is delivered to its handler when the block ends."""
-    signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+    that arrives meanwhile is delivered to its handler when the block ends. The block ends
+    with the mask it found, so that a block inside another one leaves them held."""
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 class StopSignals:

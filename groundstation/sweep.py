@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import math
 import multiprocessing as mp
 import os
@@ -46,6 +47,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, TextIO
 
 from groundstation.campaign import RunSpec, execute_run
+from groundstation.signals import stop_signals_blocked
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -56,6 +58,9 @@ IDENTITY_COLUMNS = ("run_id", "run_index", "campaign", "seed", "scenario")
 TEXT_COLUMNS = ("verdict", "crash_reason", "crash_kind", "error", "fasthex_version", "mission",
                 "vehicle", "preset", "estimator")
 FLUSH_INTERVAL_S = 2.0
+#: what a run imports (execute_run), loaded once by the forkserver the pool's workers fork from
+FLIGHT_MODULES = ("groundstation.campaign", "groundstation.simulation",
+                  "groundstation.session_config", "sim_backend.closed_loop", "controller.pipeline")
 METADATA_KEY = b"fasthex.sweep"
 
 
@@ -71,7 +76,8 @@ class Runner(Protocol):
 
     def run(self, runs: Iterable[RunSpec]) -> Iterator[dict[str, Any]]: ...
 
-    def close(self) -> None: ...
+    def close(self) -> None:
+        """Stop every process the runner started; a second call does nothing."""
 
 
 class SerialRunner:
@@ -128,10 +134,22 @@ class ProcessPoolRunner:
         # forkserver: a clean process (no threads of ours) that has imported the flight code
         # once; every worker, and the replacement of one that died, is a cheap fork of it
         self._ctx = mp.get_context("forkserver")
-        self._ctx.set_forkserver_preload(["groundstation.campaign", "groundstation.simulation",
-                                          "sim_backend.closed_loop", "controller.pipeline"])
+        self._ctx.set_forkserver_preload(list(FLIGHT_MODULES))
         self._procs: dict[int, tuple[Any, Connection]] = {}
+        self._busy: dict[int, RunSpec] = {}  # worker -> the run it flies
         self._next_id = 0
+        # The terminal sends Ctrl-C to the whole process group, `timeout` its SIGTERM too:
+        # ending the workers is this process's job (close()). The forkserver and every worker
+        # it forks start with the stop signals held; a worker ignores them at once, and the
+        # forkserver keeps them held (it ignores only SIGINT itself).
+        _start_resource_tracker()
+        try:
+            with stop_signals_blocked():
+                while len(self._procs) < self.workers:
+                    self._start()
+        except BaseException:  # an interrupt the block deferred: no worker outlives it
+            self.close()
+            raise
 
     def _start(self) -> int:
         parent, child = self._ctx.Pipe()
@@ -146,8 +164,8 @@ class ProcessPoolRunner:
 
     def run(self, runs: Iterable[RunSpec]) -> Iterator[dict[str, Any]]:
         pending = iter(runs)
-        busy: dict[int, RunSpec] = {}
-        idle: list[int] = list(self._procs)  # a pool is reused from one run() to the next
+        busy = self._busy
+        idle = [wid for wid in self._procs if wid not in busy]  # a pool is reused across run()
         while len(self._procs) < self.workers:
             idle.append(self._start())
         exhausted = False
@@ -188,9 +206,15 @@ class ProcessPoolRunner:
                 yield row
 
     def close(self) -> None:
-        for _proc, conn in self._procs.values():
+        """End every worker: an idle one is told to stop; one still flying a run (the sweep
+        was interrupted, its run is dropped) is killed, since it ignores SIGINT and SIGTERM."""
+        for wid, (proc, conn) in self._procs.items():
+            if wid in self._busy:
+                proc.kill()
+                continue
             with contextlib.suppress(OSError, BrokenPipeError):
                 conn.send(None)
+        self._busy.clear()
         deadline = time.monotonic() + 5.0
         for proc, conn in self._procs.values():
             proc.join(timeout=max(0.0, deadline - time.monotonic()))
@@ -199,6 +223,17 @@ class ProcessPoolRunner:
                 proc.join(timeout=2.0)
             conn.close()
         self._procs.clear()
+
+
+def _start_resource_tracker() -> None:
+    """Start multiprocessing's resource tracker (a child of ours) on its own, before the
+    processes that need it: starting it unblocks SIGINT and SIGTERM in the calling thread
+    (CPython holds them only while it spawns the tracker, which ignores them), which would
+    let them through to the processes started after it in the same block. Started inside a
+    block of its own, it keeps SIGHUP held."""
+    from multiprocessing import resource_tracker
+    with stop_signals_blocked():
+        resource_tracker.ensure_running()
 
 
 def _exit_text(code: int | None) -> str:
@@ -224,16 +259,32 @@ class DaskRunner:
             raise RuntimeError("dask.distributed is not installed (pip install "
                                "'dask[distributed]')") from None
         self._cluster: Any = None
-        if scheduler == "local":
-            self._cluster = LocalCluster(n_workers=workers, threads_per_worker=1,
-                                         processes=True, dashboard_address=None,
-                                         silence_logs=40)
-            self.client = Client(self._cluster)
-            self.description = f"Dask LocalCluster, {workers} worker processes"
-        else:
-            self.client = Client(scheduler, timeout="20s")
-            n = len(self.client.scheduler_info().get("workers", {}))
-            self.description = f"Dask scheduler {scheduler}, {n} workers now"
+        self.client: Any = None
+        # Dask logs its cluster's life at INFO and its teardown's broken connections as
+        # tracebacks: a sweep shows its own progress, and Dask's warnings only with -v
+        self._log_levels = _dask_log_levels(logging.ERROR if scheduler == "local"
+                                            else logging.WARNING)
+        try:
+            if scheduler == "local":
+                # the worker processes start with the stop signals held and never unblock
+                # them: the terminal's Ctrl-C to the process group is this process's to
+                # handle, and close() ends the cluster
+                _start_resource_tracker()
+                with stop_signals_blocked():
+                    self._cluster = LocalCluster(
+                        n_workers=workers, threads_per_worker=1, processes=True,
+                        dashboard_address=None, silence_logs=logging.CRITICAL,
+                        # no dashboard; its HTTP server on a free port of the loopback
+                        scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
+                    self.client = Client(self._cluster)
+                self.description = f"Dask LocalCluster, {workers} worker processes"
+            else:
+                self.client = Client(scheduler, timeout="20s")
+                n = len(self.client.scheduler_info().get("workers", {}))
+                self.description = f"Dask scheduler {scheduler}, {n} workers now"
+        except BaseException:  # no scheduler there, or an interrupt the block deferred
+            self.close()
+            raise
 
     def run(self, runs: Iterable[RunSpec]) -> Iterator[dict[str, Any]]:
         from distributed import as_completed
@@ -254,11 +305,42 @@ class DaskRunner:
             yield row
 
     def close(self) -> None:
-        with contextlib.suppress(Exception):
-            self.client.close()
-        if self._cluster is not None:
-            with contextlib.suppress(Exception):
-                self._cluster.close()
+        """Close the client (its runs are cancelled) and the cluster we started; what Dask
+        logs while its connections close under cancelled runs is not shown."""
+        during_close = _dask_log_levels(logging.CRITICAL + 1)
+        try:
+            if self.client is not None:
+                with contextlib.suppress(Exception):
+                    self.client.close()
+            if self._cluster is not None:
+                with contextlib.suppress(Exception):
+                    self._cluster.close()
+                self._cluster = None
+        finally:
+            _restore_log_levels(during_close)
+            _restore_log_levels(self._log_levels)
+            self._log_levels = {}
+
+
+def _dask_log_levels(level: int) -> dict[str, int]:
+    """Raise Dask's loggers (``distributed`` and those below it with a level of their own)
+    to at least ``level``, unless the user asked for INFO (``-v``); their previous levels."""
+    if logging.getLogger().isEnabledFor(logging.INFO) and level <= logging.CRITICAL:
+        return {}
+    names = ["distributed", *(name for name, lg in logging.root.manager.loggerDict.items()
+                              if name.startswith("distributed.")
+                              and isinstance(lg, logging.Logger) and lg.level)]
+    previous = {}
+    for name in names:
+        logger = logging.getLogger(name)
+        previous[name] = logger.level
+        logger.setLevel(max(level, logger.level))
+    return previous
+
+
+def _restore_log_levels(levels: dict[str, int]) -> None:
+    for name, level in levels.items():
+        logging.getLogger(name).setLevel(level)
 
 
 def make_runner(workers: int | None, scheduler: str | None,
@@ -425,6 +507,7 @@ class Progress:
         self.t0 = time.monotonic()
         self._last_print = -math.inf
         self._last_decile = -1
+        self._line_open = False  # a line drawn on the terminal, not ended yet
 
     def update(self, row: dict[str, Any]) -> None:
         self.done += 1
@@ -453,16 +536,22 @@ class Progress:
                 f"{_hms(elapsed)}, ETA {_hms(eta)}")
 
     def _write(self, text: str) -> None:
-        if self.tty:
-            self.stream.write("\r\x1b[2K" + text)
-        else:
-            self.stream.write(text + "\n")
-        self.stream.flush()
+        # a terminal that went away (SIGHUP) does not stop the sweep, nor its clean end
+        with contextlib.suppress(OSError):
+            if self.tty:
+                self.stream.write("\r\x1b[2K" + text)
+                self._line_open = True
+            else:
+                self.stream.write(text + "\n")
+            self.stream.flush()
 
     def finish(self) -> None:
-        if self.tty:
-            self.stream.write("\n")
-            self.stream.flush()
+        """End the line drawn on the terminal (what is printed next starts a line)."""
+        if self._line_open:
+            self._line_open = False
+            with contextlib.suppress(OSError):
+                self.stream.write("\n")
+                self.stream.flush()
 
 
 def _hms(seconds: float) -> str:
@@ -494,8 +583,10 @@ def sweep(runs: list[RunSpec], table: ResultsTable, runner: Runner, *,
             if on_row is not None:
                 on_row(row)
     finally:
-        if progress is not None:
-            progress.finish()
-        runner.close()
-        table.consolidate()
+        try:
+            if progress is not None:
+                progress.finish()
+            runner.close()
+        finally:  # the rows are saved even if a second Ctrl-C cuts the runner's close short
+            table.consolidate()
     return flown, skipped

@@ -9,13 +9,16 @@ a cluster): :mod:`groundstation.sweep`. The table (Parquet, default ``NAME.parqu
 campaign's ``name``) is resumable: run the same command again after a Ctrl-C, a ``kill`` or a
 crash and only the missing runs fly.
 
-Exit codes: 0 when every run has a row (whatever its verdict), 130 when interrupted (the rows
-done so far are in the table), 2 for a problem with the campaign file or the options.
+Exit codes: 0 when every run has a row (whatever its verdict), 130 when interrupted by
+Ctrl-C, SIGTERM or the terminal closing (the rows done so far are in the table; the runs in
+flight are dropped and every worker process is ended), 2 for a problem with the campaign file
+or the options.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import signal
 import sys
 from pathlib import Path
@@ -64,7 +67,7 @@ def _sweep(args: argparse.Namespace) -> int:
     from groundstation.campaign import load_campaign
     from groundstation.cli import UserError, version
     from groundstation.signals import stop_signals_blocked
-    from groundstation.sweep import Progress, ResultsTable, make_runner, sweep
+    from groundstation.sweep import Progress, ResultsTable, Runner, make_runner, sweep
 
     if args.workers is not None and args.workers < 1:
         raise UserError(f"--workers must be at least 1, got {args.workers}")
@@ -105,6 +108,7 @@ def _sweep(args: argparse.Namespace) -> int:
 
     for sig in previous:
         signal.signal(sig, interrupt)
+    runner: Runner | None = None
     try:
         with stop_signals_blocked():  # worker processes start with the stop signals held
             runner = make_runner(args.workers, args.scheduler)
@@ -114,13 +118,17 @@ def _sweep(args: argparse.Namespace) -> int:
                                progress=progress)
     except KeyboardInterrupt:
         have = len(table.rows)
-        print(f"\nfasthex: sweep interrupted: {sum(1 for r in runs if r.run_id in table.rows)}"
-              f" of {len(runs)} runs are in {table_path} ({have} rows); run the same command "
-              "again to fly the rest", file=sys.stderr)
+        with contextlib.suppress(OSError):  # SIGHUP: the terminal is gone
+            print(f"fasthex: sweep interrupted: "
+                  f"{sum(1 for r in runs if r.run_id in table.rows)} of {len(runs)} runs are "
+                  f"in {table_path} ({have} rows); run the same command again to fly the rest",
+                  file=sys.stderr)
         return 130
     except OSError as exc:
         raise UserError(f"sweep: {exc}") from None
     finally:
+        if runner is not None:  # sweep() closed it, unless the interrupt came before it ran
+            runner.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     verdicts: dict[str, int] = {}
