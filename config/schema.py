@@ -280,6 +280,9 @@ class _Walker:
             name = self.construct(key_node, key)
             if not isinstance(name, str):
                 raise self.error(key_node, key, f"keys must be names, got {_short(name)}")
+            if not name.strip() or _CONTROL.search(name) or "\n" in name or "\r" in name:
+                # an empty or multi-line key would make a message that names it unreadable
+                raise self.error(key_node, key, f"keys must be names, got {name!r}")
             if name in entries:
                 raise self.error(key_node, _join(key, name), "duplicate key")
             entries[name] = (key_node, value_node)

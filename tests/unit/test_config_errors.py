@@ -104,6 +104,16 @@ def test_that_broken_yaml_syntax_gives_the_line(tmp_path: Path) -> None:
     assert info.value.line is not None and info.value.line >= _line_of(text, "mass_kg")
 
 
+@pytest.mark.parametrize("key", ['""', '"  "', r'"\n\n  "', r'"a\rb"'])
+def test_that_an_empty_or_multi_line_key_is_named_on_one_line(tmp_path: Path, key: str) -> None:
+    # found by fuzzing: "tune.\n: unknown key" was a message over two lines
+    path = _write(tmp_path, GOOD.replace("mass_kg: 3.1", f"mass_kg: 3.1\n{key}: 1"))
+    with pytest.raises(ConfigError) as info:
+        load_vehicle(path)
+    message = str(info.value)
+    assert "\n" not in message and "keys must be names, got " in message
+
+
 def test_that_an_empty_file_is_refused(tmp_path: Path) -> None:
     path = _write(tmp_path, "# nothing here\n")
     with pytest.raises(ConfigError) as info:
