@@ -117,6 +117,21 @@ def pytest_configure(config: pytest.Config) -> None:
         lock_dir = tempfile.mkdtemp(prefix="pytest-run-lock-")
         os.environ[_LOCK_DIR_ENV] = lock_dir
         config.stash[_LOCK_DIR_KEY] = lock_dir
+        _compile_kernels()
+
+
+def _compile_kernels() -> None:
+    """Fill numba's on-disk cache once, in the controller, before the workers start: else each
+    worker (and the CLI processes of the first tests) compiles the physics, the control law
+    and the UKF itself, ~25 s each on a fresh install. A 0.1 s flight reaches all of them."""
+    from controller.missions import Mission
+    from groundstation.configs import load_disturbances, load_mission
+    from sim_backend.closed_loop import UkfStateSource, fly_mission
+
+    params = load_vehicle("fasthex")
+    fly_mission(params, Mission(load_mission("exp1-hover-tilt-steps")),
+                load_disturbances("ideal"), duration_s=0.1,
+                state_source=UkfStateSource(params.mass_kg, params.gravity_m_s2))
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:
