@@ -539,8 +539,9 @@ class Progress:
         # a terminal that went away (SIGHUP) does not stop the sweep, nor its clean end
         with contextlib.suppress(OSError):
             if self.tty:
-                self.stream.write("\r\x1b[2K" + text)
+                # open before the write: a Ctrl-C between the two must still end the line
                 self._line_open = True
+                self.stream.write("\r\x1b[2K" + text)
             else:
                 self.stream.write(text + "\n")
             self.stream.flush()
