@@ -1,7 +1,7 @@
 """Shared fixtures (the shipped vehicles, loaded through the same path as the CLI) and the
 scheduling of the suite under pytest-xdist.
 
-The README's test command runs the suite on four workers (``pytest -n 4``). Lockstep flights are
+The README's test command runs the suite on three workers (``pytest -n 3``). Lockstep flights are
 repeatable whatever the load (each tick is a round trip through the emulated board's pty), so
 two of them may run side by side. Tests that measure wall time, real-time streams or scheduling
 (a realtime emulator, MoCap rates and latencies, a pty driven as a terminal, a process killed
@@ -123,20 +123,15 @@ def pytest_configure(config: pytest.Config) -> None:
 def _compile_kernels() -> None:
     """Fill numba's on-disk cache once, in the controller, before the workers start: else each
     worker (and the CLI processes of the first tests) compiles the physics, the control law
-    and the UKF itself, ~25 s each on a fresh install. Two processes, one per core: a 0.1 s
-    flight on the true state (physics, control law, wrench map) and the UKF's kernels."""
-    import subprocess
-    import sys
+    and the UKF itself, ~25 s each on a fresh install. A 0.1 s flight reaches all of them."""
+    from controller.missions import Mission
+    from groundstation.configs import load_disturbances, load_mission
+    from sim_backend.closed_loop import UkfStateSource, fly_mission
 
-    flight = ("from controller.missions import Mission;"
-              "from groundstation.configs import load_disturbances, load_mission, load_vehicle;"
-              "from sim_backend.closed_loop import fly_mission;"
-              "fly_mission(load_vehicle('fasthex'), Mission(load_mission('exp1-hover-tilt-steps'"
-              ")), load_disturbances('ideal'), duration_s=0.1)")
-    ukf = "from estimator.ukf import Ukf; Ukf()"
-    procs = [subprocess.Popen([sys.executable, "-c", code]) for code in (flight, ukf)]
-    for proc in procs:
-        proc.wait()
+    params = load_vehicle("fasthex")
+    fly_mission(params, Mission(load_mission("exp1-hover-tilt-steps")),
+                load_disturbances("ideal"), duration_s=0.1,
+                state_source=UkfStateSource(params.mass_kg, params.gravity_m_s2))
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:
