@@ -123,15 +123,20 @@ def pytest_configure(config: pytest.Config) -> None:
 def _compile_kernels() -> None:
     """Fill numba's on-disk cache once, in the controller, before the workers start: else each
     worker (and the CLI processes of the first tests) compiles the physics, the control law
-    and the UKF itself, ~25 s each on a fresh install. A 0.1 s flight reaches all of them."""
-    from controller.missions import Mission
-    from groundstation.configs import load_disturbances, load_mission
-    from sim_backend.closed_loop import UkfStateSource, fly_mission
+    and the UKF itself, ~25 s each on a fresh install. Two processes, one per core: a 0.1 s
+    flight on the true state (physics, control law, wrench map) and the UKF's kernels."""
+    import subprocess
+    import sys
 
-    params = load_vehicle("fasthex")
-    fly_mission(params, Mission(load_mission("exp1-hover-tilt-steps")),
-                load_disturbances("ideal"), duration_s=0.1,
-                state_source=UkfStateSource(params.mass_kg, params.gravity_m_s2))
+    flight = ("from controller.missions import Mission;"
+              "from groundstation.configs import load_disturbances, load_mission, load_vehicle;"
+              "from sim_backend.closed_loop import fly_mission;"
+              "fly_mission(load_vehicle('fasthex'), Mission(load_mission('exp1-hover-tilt-steps'"
+              ")), load_disturbances('ideal'), duration_s=0.1)")
+    ukf = "from estimator.ukf import Ukf; Ukf()"
+    procs = [subprocess.Popen([sys.executable, "-c", code]) for code in (flight, ukf)]
+    for proc in procs:
+        proc.wait()
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:

@@ -173,7 +173,9 @@ def test_the_preflight_reports_the_board_and_mocap_clocks(tmp_path: Path) -> Non
     board = re.search(r"board clock ([0-9.]+) Hz, offset ([-+0-9.]+) s, drift ([-+0-9]+) "
                       r"(?:\+- ([0-9]+) ppm|ppm \(first estimate\))", imu)
     assert board is not None, imu
-    assert float(board.group(1)) == pytest.approx(494.0, abs=0.5)  # 0.1 % after ~1 s
+    # 0.2 % after ~1 s of host-stamped blocks, printed to 1 Hz (a CI run read 495 once: an
+    # estimate past 494.5 on 0.1 %; the minute-long test holds it to 20 ppm)
+    assert float(board.group(1)) == pytest.approx(494.0, abs=1.0)
     # 1 s of preflight: the rate from the first blocks, within 0.1 % (the minute test: 20 ppm)
     assert float(board.group(3)) == pytest.approx(BOARD_PPM, abs=1000.0)
     server = re.search(r"server clock offset ([-+0-9.]+) s, drift ([-+0-9]+) "
