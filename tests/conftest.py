@@ -30,18 +30,19 @@ from groundstation.configs import load_vehicle
 
 #: test modules (paths below tests/) whose every test runs alone: they assert on real time
 #: (rates, latencies, clock estimates, the 100 ms a kill may lose, IMU gaps on the host clock,
-#: servo reply timeouts) or on signals delivered at a time; everything else shares the machine
+#: servo reply timeouts); everything else shares the machine. The stop-signal tests
+#: (test_fly_signals, test_fly_sigint) share it: their flights are lockstep and each signal
+#: waits for the record to show the vehicle airborne, so a loaded machine only slows them,
+#: as a user's busy laptop would. Single tests of shared modules that run against a realtime
+#: device carry the ``exclusive`` marker themselves (test_bench_leave_devices' bench tests)
 EXCLUSIVE_MODULES = frozenset({
     "hil/test_hil_flight_ctrl.py",
     "hil/test_hil_mocap.py",
     "hil/test_hil_servo.py",
-    "integration/test_bench_leave_devices.py",
     "integration/test_clock_sync.py",
     "integration/test_flightctrl_emulator.py",
     "integration/test_flightctrl_link.py",
     "integration/test_fly_kill.py",
-    "integration/test_fly_sigint.py",
-    "integration/test_fly_signals.py",
     "integration/test_mocap_cli.py",
     "integration/test_mocap_natnet.py",
     "integration/test_mocap_natnet_peer.py",
@@ -70,6 +71,9 @@ LONG_SHARED_MODULES = (
     "integration/test_fly_1khz.py",
     "integration/test_scenario_fly_vs_simulate.py",
     "integration/test_fly_console.py",
+    "integration/test_fly_signals.py",
+    "integration/test_fly_sigint.py",
+    "integration/test_bench_leave_devices.py",
     "integration/test_mocap_qtm.py",
     "integration/test_simulate_mission_kinds.py",
 )

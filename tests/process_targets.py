@@ -47,3 +47,82 @@ def run_or_die(spec: Any) -> dict[str, Any]:
     if spec.seed == 13:
         os._exit(9)
     return execute_run(spec)
+
+
+# ---- integration/test_fly_kill.py: a realtime flight in a process group of its own
+
+START_Z_M, TAKEOFF_HEIGHT_M = 0.1, 0.8
+MISSION = f"""\
+schema: fasthex.mission
+version: 1
+name: long-hover
+description: take off and hover for a minute
+start_pos_w_m: [0.1, -0.1, {START_Z_M}]
+segments:
+  - kind: takeoff
+    duration_s: 2.5
+    height_m: {TAKEOFF_HEIGHT_M}
+    alpha: {{kind: constant, value_deg: 0.0}}
+  - kind: hold
+    duration_s: 60.0
+  - kind: land
+    duration_s: 3.0
+    alpha: {{kind: constant, value_deg: 0.0}}
+"""
+SESSION = """\
+schema: fasthex.session
+version: 1
+name: long-hover-realtime
+vehicle: fasthex
+mission: long-hover.yaml
+backend:
+  kind: emulated
+  clock: realtime
+  seed: 3
+  disturbances: paper-calibrated
+safety:
+  geofence_min_m: [-2.0, -2.0, -0.5]
+  geofence_max_m: [2.0, 2.0, 2.5]
+  imu_timeout_s: 0.1
+  failsafe_action: land
+telemetry:
+  rerun: "off"
+"""
+
+
+def fly_long_hover_in_own_group(tmp: str) -> None:
+    """Child-process entry: a process group of its own (the ground station and the telemetry
+    and servo processes it starts), devices linked in ``tmp/dev``, where the emulator leaves
+    its truth log and its exit note."""
+    import os
+    from pathlib import Path
+
+    import groundstation.session as session_module
+    from controller.missions import Mission
+    from groundstation.configs import load_mission, load_vehicle
+    from groundstation.session import FlightSession
+    from groundstation.session_config import load_session
+
+    os.setpgid(0, 0)
+
+    class EmulatorWithTruth(session_module.EmulatorProcess):
+        """The real emulator, with its truth log on: a realtime session leaves it off (its
+        writes come from the board's thread); the measurement needs it."""
+
+        def __init__(self, cfg: Any, vehicle: str, start: Any, link_dir: Path, *args: Any,
+                     **kwargs: Any) -> None:
+            kwargs.pop("truth_path", None)
+            rest = list(args)
+            rest[1:2] = [link_dir / "truth.f64"]
+            super().__init__(cfg, vehicle, start, link_dir, *rest, **kwargs)
+
+    session_module.EmulatorProcess = EmulatorWithTruth  # type: ignore[misc,assignment]
+    tmp_path = Path(tmp)
+    (tmp_path / "long-hover.yaml").write_text(MISSION)
+    (tmp_path / "session.yaml").write_text(SESSION)
+    dev = tmp_path / "dev"
+    dev.mkdir(exist_ok=True)
+    FlightSession(load_session(tmp_path / "session.yaml"), load_vehicle("fasthex"),
+                  Mission(load_mission(tmp_path / "long-hover.yaml")),
+                  record_path=tmp_path / "killed.fhr", session_dir=dev,
+                  echo_events=False).run()

@@ -6,7 +6,9 @@ For probe and servo the emulated vehicle runs in this test process (real ptys, a
 server on UDP loopback, the realtime clock: a board that free-runs like a real one) and the
 commands run against a hardware session that names its devices, as on a bench; the board's
 state is read from the emulator. The flights are lockstep flights of an emulated session
-(deterministic, whatever the load), whose board reports at shutdown what was left on.
+(deterministic, whatever the load), whose board reports at shutdown what was left on. Under
+pytest-xdist the bench tests run alone (``exclusive``: a realtime board whose replies have
+timeouts); the flights share the machine.
 """
 
 from __future__ import annotations
@@ -105,6 +107,7 @@ def _leave_streaming(bench: Bench) -> None:
     fc._transport.close()  # no close(): as if the process had been killed
 
 
+@pytest.mark.exclusive  # a realtime board in this process, reply timeouts
 def test_that_probe_leaves_the_board_with_streams_off_and_motors_stopped(
         bench: Bench, capsys: pytest.CaptureFixture[str]) -> None:
     # Fixture: a previous client left the board streaming with its motors started
@@ -120,6 +123,7 @@ def test_that_probe_leaves_the_board_with_streams_off_and_motors_stopped(
     assert not fc.streams_on and not fc.motors_on
 
 
+@pytest.mark.exclusive  # a realtime board in this process, reply timeouts
 def test_that_servo_commands_leave_the_board_quiet(bench: Bench) -> None:
     # Test: the servo commands never open the Flight-Ctrl; it stays as found (quiet)
     for argv in (["servo", "status", "--session", str(bench.session)],
@@ -217,6 +221,7 @@ def test_that_a_killed_ground_station_is_seen_to_leave_the_streams_on(tmp_path: 
     assert f"closed with B, I, M on: {LEFT_ON}" in err, err
 
 
+@pytest.mark.exclusive  # a realtime board in this process, reply timeouts
 def test_that_close_sends_the_stop_and_stream_off_sequence(bench: Bench) -> None:
     # Fixture
     fc = FlightCtrl.open(f"pty://{bench.backend.flight_ctrl.path}", FlightCtrlConfig())

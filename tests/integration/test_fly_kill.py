@@ -21,89 +21,18 @@ import os
 import signal
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
+from process_targets import START_Z_M, TAKEOFF_HEIGHT_M, fly_long_hover_in_own_group
 
-from controller.missions import Mission
-from groundstation.configs import load_mission, load_vehicle
 from groundstation.record import read_record
-from groundstation.session import FlightSession
-from groundstation.session_config import load_session
 from sim_backend.backend import TruthLog
 
-START_Z_M, TAKEOFF_HEIGHT_M = 0.1, 0.8
-MISSION = f"""\
-schema: fasthex.mission
-version: 1
-name: long-hover
-description: take off and hover for a minute
-start_pos_w_m: [0.1, -0.1, {START_Z_M}]
-segments:
-  - kind: takeoff
-    duration_s: 2.5
-    height_m: {TAKEOFF_HEIGHT_M}
-    alpha: {{kind: constant, value_deg: 0.0}}
-  - kind: hold
-    duration_s: 60.0
-  - kind: land
-    duration_s: 3.0
-    alpha: {{kind: constant, value_deg: 0.0}}
-"""
-SESSION = """\
-schema: fasthex.session
-version: 1
-name: long-hover-realtime
-vehicle: fasthex
-mission: long-hover.yaml
-backend:
-  kind: emulated
-  clock: realtime
-  seed: 3
-  disturbances: paper-calibrated
-safety:
-  geofence_min_m: [-2.0, -2.0, -0.5]
-  geofence_max_m: [2.0, 2.0, 2.5]
-  imu_timeout_s: 0.1
-  failsafe_action: land
-telemetry:
-  rerun: "off"
-"""
 #: the documented crash loss of the flight record
 MAX_LOSS_S = 0.1
 #: the kill comes this long after a telemetry write was seen: a writer that writes every 50 ms
 #: has written twice more since; one that writes every 300 ms has not
 KILL_AFTER_WRITE_S = 0.15
-
-
-def fly_long_hover_in_own_group(tmp: str) -> None:
-    """Child-process entry: a process group of its own (the ground station and the telemetry
-    and servo processes it starts), devices linked in ``tmp/dev``, where the emulator leaves
-    its truth log and its exit note."""
-    os.setpgid(0, 0)
-    import groundstation.session as session_module
-
-    class EmulatorWithTruth(session_module.EmulatorProcess):
-        """The real emulator, with its truth log on: a realtime session leaves it off (its
-        writes come from the board's thread); the measurement needs it."""
-
-        def __init__(self, cfg: Any, vehicle: str, start: Any, link_dir: Path, *args: Any,
-                     **kwargs: Any) -> None:
-            kwargs.pop("truth_path", None)
-            rest = list(args)
-            rest[1:2] = [link_dir / "truth.f64"]
-            super().__init__(cfg, vehicle, start, link_dir, *rest, **kwargs)
-
-    session_module.EmulatorProcess = EmulatorWithTruth  # type: ignore[misc,assignment]
-    tmp_path = Path(tmp)
-    (tmp_path / "long-hover.yaml").write_text(MISSION)
-    (tmp_path / "session.yaml").write_text(SESSION)
-    dev = tmp_path / "dev"
-    dev.mkdir(exist_ok=True)
-    FlightSession(load_session(tmp_path / "session.yaml"), load_vehicle("fasthex"),
-                  Mission(load_mission(tmp_path / "long-hover.yaml")),
-                  record_path=tmp_path / "killed.fhr", session_dir=dev,
-                  echo_events=False).run()
 
 
 def _wait_for(predicate: object, timeout_s: float, poll_s: float = 0.05) -> bool:
