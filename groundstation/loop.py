@@ -74,8 +74,9 @@ IMU_RATE_WINDOW_SAMPLES = 250
 #: the loop's clock jumps with it), not as that many samples lost; a long run of lost samples
 #: is the IMU timeout's to judge
 IMU_RATE_MAX_COUNTED_GAP = 17
-#: lockstep: wall time a servo cycle may take before the servo counts as not answering
-LOCKSTEP_SERVO_WAIT_S = 1.5
+#: lockstep: wall time a servo cycle may take before the servo counts as not answering (a
+#: healthy servo's cycle may be tried three times: 3 x (502 ms SDK timeout + 100 ms resync))
+LOCKSTEP_SERVO_WAIT_S = 4.0
 #: landing: O_B within 4 cm of its resting height this long -> touchdown confirmed, disarm
 TOUCHDOWN_CONFIRM_S = 0.4
 #: lockstep: wall time after which a sample counts as lost, and the slice to check the link.

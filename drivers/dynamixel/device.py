@@ -137,6 +137,12 @@ class TiltServoConfig:
     rate_limit_goal: bool = spec(True, doc="ramp goals at max_tilt_rate_deg_s on the wall clock; "
                                  "False when the tilt planner already ramps them (lockstep: "
                                  "the servo's Moving Speed still bounds the motion)")
+    late_reply_retries: int = spec(
+        0, ge=0, le=5, doc="a requested cycle (on_request) of a servo that answered its last "
+        "cycle is tried this many "
+        "more times (after the resync wait) before a missing or garbled reply is reported "
+        "(lockstep: an emulated servo starved by a loaded host is late, not faulty; a servo "
+        "already in fault is never retried, so its 2 Hz retries cost one timeout each)")
     assume_homed: bool = spec(True, doc="trust zero_offset_steps at start (else home() first)")
     serve: Literal["periodic", "on_request"] = spec(
         "periodic", doc="periodic: a service cycle every 1/rate_hz s of wall time; on_request: "
@@ -572,6 +578,9 @@ class _Worker:
         self.ever_configured = False
         self.recovering = False
         self.had_errors = False
+        #: the last cycle got its answer (or the servo has just been configured): the next
+        #: one may be retried (``late_reply_retries``)
+        self.answered_last_cycle = False
         self.next_reconnect = 0.0
 
     # -- publishing
@@ -630,6 +639,7 @@ class _Worker:
         link.write(Reg.LED, 1, 1)
         self.ever_configured = True
         self.recovering = False
+        self.answered_last_cycle = True
         self.goal_rad = steps_to_tilt(present, cfg.gear_ratio, self.zero)
         self.goal_t = time.monotonic()
         self.configured = True
@@ -737,7 +747,27 @@ class _Worker:
         if name == "torque":
             return self.link.write(Reg.TORQUE_ENABLE, 1, int(bool(args[0])))
         if name == "cycle":
-            health, errors = self.cycle()
+            retries = self.cfg.late_reply_retries if self.answered_last_cycle else 0
+            for attempt in range(retries + 1):
+                try:
+                    health, errors = self.cycle()
+                    break
+                except _PortLostError:
+                    raise
+                except ServoCommError as exc:
+                    if attempt == retries or isinstance(exc, _ReconfigureError):
+                        self.answered_last_cycle = False
+                        raise
+                    # late, not (yet) faulty: counted, not published; the late reply may
+                    # still come, so wait and flush as fail() does, then ask again
+                    bad = self.link.result_code(exc)
+                    self.values[_S.CORRUPT if bad is ServoHealth.CORRUPT_REPLY
+                                else _S.TIMEOUTS] += 1
+                    log.debug("%s (retrying)", exc)
+                    if self.stop.wait(self.cfg.resync_quiet_s):
+                        raise
+                    self.link.flush()
+            self.answered_last_cycle = True
             self.publish(health, errors)
             return int(health)
         raise ValueError(f"unknown servo command {name!r}")

@@ -199,6 +199,7 @@ class EmulatedMX28:
 
         # Faults and bookkeeping.
         self.fault = Fault.NONE
+        self._fault_replies_left: int | None = None  # None: the fault lasts until changed
         self.late_s = 0.08
         self.replies_sent = 0
         self.instructions = 0
@@ -236,9 +237,15 @@ class EmulatedMX28:
         return self._temp_c
 
     # ------------------------------------------------------------------ fault knobs
-    def set_fault(self, fault: Fault, late_s: float | None = None) -> None:
+    def set_fault(self, fault: Fault, late_s: float | None = None,
+                  replies: int | None = None) -> None:
+        """Inject ``fault`` on every reply from now on, or on the next ``replies`` replies only
+        (then the servo answers normally again)."""
+        if replies is not None and replies < 1:
+            raise ValueError(f"replies must be at least 1, got {replies}")
         with self._mutex:
             self.fault = fault
+            self._fault_replies_left = replies
             if late_s is not None:
                 self.late_s = late_s
 
@@ -388,12 +395,19 @@ class EmulatedMX28:
         return abs(client - servo) <= BAUD_TOLERANCE * servo
 
     def _schedule(self, reply: bytes | None) -> None:
-        if reply is None or self.fault is Fault.SILENT:
+        if reply is None:
             return
-        if self.fault is Fault.GARBLE:
+        fault = self.fault
+        if fault is not Fault.NONE and self._fault_replies_left is not None:
+            self._fault_replies_left -= 1
+            if self._fault_replies_left <= 0:
+                self.fault, self._fault_replies_left = Fault.NONE, None
+        if fault is Fault.SILENT:
+            return
+        if fault is Fault.GARBLE:
             reply = reply[:-1] + bytes(((reply[-1] ^ 0x5A) & 0xFF,))
         delay_s = 2e-6 * self._read_reg(Reg.RETURN_DELAY_TIME)
-        if self.fault is Fault.LATE:
+        if fault is Fault.LATE:
             delay_s += self.late_s
         self._replies.append((time.monotonic() + delay_s, reply))
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -134,3 +135,53 @@ def test_that_a_power_cycle_during_a_silence_is_caught_by_the_led_marker(
     state = servo.wait_for(lambda s: s.health is ServoHealth.HOMING_REQUIRED, WAIT_S)
     assert not state.homed
     servo.wait_for(lambda s: emu.register(Reg.TORQUE_ENABLE) == 1, WAIT_S)  # holding again
+
+
+def _cycle_or_error(servo: TiltServo) -> ServoState | ServoCommError:
+    try:
+        return servo.sync_cycle(WAIT_S)
+    except ServoCommError as exc:
+        return exc
+
+
+@pytest.mark.parametrize("retries", [2, 0])
+def test_that_a_lockstep_cycle_of_a_healthy_servo_is_asked_again_before_a_lost_reply_is_a_fault(
+        tmp_path: Path, retries: int) -> None:
+    """Lockstep cycles (``serve: on_request``) with ``late_reply_retries``: a servo that answered
+    its last cycle is asked again after a lost reply (an emulated servo starved by a loaded
+    host is late, not faulty); one already in fault is not (its retries cost one timeout)."""
+    # Fixture: a servo cycled on request, as a lockstep flight does
+    emu = EmulatedMX28(BenchVehicle(max_tilt_rate_rad_s=100 * DEG), lock=threading.Lock(),
+                       link_path=tmp_path / "tilt-servo", drive_clock=True)
+    cfg = TiltServoConfig(uri=f"pty://{emu.path}?id=1", serve="on_request",
+                          rate_limit_goal=False, late_reply_retries=retries)
+    with emu, TiltServo(cfg) as servo:
+        deadline = time.monotonic() + WAIT_S
+        first = _cycle_or_error(servo)  # "not connected" until the servo process has it
+        while not isinstance(first, ServoState) and time.monotonic() < deadline:
+            time.sleep(0.05)  # bounded: the servo process starts its SDK
+            first = _cycle_or_error(servo)
+        assert isinstance(first, ServoState) and first.ok
+        # Test 1: one reply lost
+        emu.set_fault(Fault.SILENT, replies=1)
+        one_lost = _cycle_or_error(servo)
+        if retries == 0:  # the control: without retries that is a fault
+            assert isinstance(one_lost, ServoCommError)
+            servo.wait_for(lambda s: s.health is ServoHealth.NO_REPLY, WAIT_S)
+            return
+        assert isinstance(one_lost, ServoState) and one_lost.ok
+        assert one_lost.seq == first.seq + 1 and one_lost.timeouts == 1
+        # Test 2: more lost replies in a row than retries: the cycle fails, NO_REPLY
+        emu.set_fault(Fault.SILENT, replies=retries + 1)
+        assert isinstance(_cycle_or_error(servo), ServoCommError)
+        faulted = servo.wait_for(lambda s: s.health is ServoHealth.NO_REPLY, WAIT_S)
+        assert faulted.timeouts == 1 + retries + 1
+        # Test 3: in fault, one lost reply is one failed cycle (no retry)
+        emu.set_fault(Fault.SILENT, replies=1)
+        assert isinstance(_cycle_or_error(servo), ServoCommError)
+        servo.wait_for(lambda s: s.timeouts == faulted.timeouts + 1, WAIT_S)
+        # Test 4: it answers again: back to OK, and retried again when next needed
+        assert _cycle_or_error(servo).ok  # type: ignore[union-attr]
+        emu.set_fault(Fault.SILENT, replies=1)
+        again = _cycle_or_error(servo)
+        assert isinstance(again, ServoState) and again.ok
