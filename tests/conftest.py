@@ -18,7 +18,10 @@ import contextlib
 import fcntl
 import os
 import shutil
+import signal
 import tempfile
+import threading
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -173,6 +176,37 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
     # setup, call and teardown of the test, its function and module fixtures included
     with _run_lock(item.config, item.get_closest_marker("exclusive") is not None):
         yield
+
+
+_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+def _stop_signal_state() -> tuple[frozenset[int], tuple[object, ...]]:
+    blocked = frozenset(int(s) for s in signal.pthread_sigmask(signal.SIG_BLOCK, []))
+    return blocked & {int(s) for s in _STOP_SIGNALS}, tuple(
+        signal.getsignal(s) for s in _STOP_SIGNALS)
+
+
+@pytest.fixture(autouse=True)
+def _stop_signals_left_as_found(request: pytest.FixtureRequest) -> Iterator[None]:
+    """A test that leaves the stop signals blocked or ignored in this process would pass that
+    on to every program a later test starts (a mask and SIG_IGN survive exec): their Ctrl-C
+    would do nothing. Put back as found, with a warning naming the test."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = _stop_signal_state()
+    yield
+    after = _stop_signal_state()
+    if after != before:
+        signal.pthread_sigmask(signal.SIG_SETMASK, sorted(
+            (set(signal.pthread_sigmask(signal.SIG_BLOCK, [])) - set(_STOP_SIGNALS))
+            | {signal.Signals(s) for s in before[0]}))
+        for sig, handler in zip(_STOP_SIGNALS, before[1], strict=True):
+            if handler is not None:
+                signal.signal(sig, handler)  # type: ignore[arg-type]
+        warnings.warn(f"{request.node.nodeid} left the stop signals changed (blocked "
+                      f"{sorted(after[0])}, handlers {after[1]}); put back", stacklevel=1)
 
 
 @pytest.fixture(scope="session")

@@ -80,9 +80,13 @@ def write_campaign(tmp_path: Path) -> Path:
 
 
 def _take_terminal() -> None:
-    """In the child: a new session whose controlling terminal is the pty on fd 0."""
+    """In the child: a new session whose controlling terminal is the pty on fd 0, and the stop
+    signals as a shell leaves them for a foreground job (default action, not blocked)."""
     os.setsid()
     fcntl.ioctl(0, termios.TIOCSCTTY, 0)
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, (signal.SIGINT, signal.SIGTERM, signal.SIGHUP))
 
 
 def processes_tagged(tag: str) -> list[int]:
