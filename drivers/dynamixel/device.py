@@ -960,14 +960,19 @@ class TiltServo:
             raise ValueError(f"{self.config.uri}: tilt goal must be finite, got {tilt_rad}")
         self._mailbox.goal[0] = min(max(tilt_rad, 0.0), self.config.max_tilt_rad)
 
-    def latest(self, now_s: float | None = None) -> ServoState:
-        """The newest state; ``now_s`` (monotonic) defaults to ``time.monotonic()``."""
+    def latest(self, now_s: float | None = None, *, as_measured: bool = False) -> ServoState:
+        """The newest state; ``now_s`` (monotonic) defaults to ``time.monotonic()``.
+
+        ``as_measured``: its age taken at its own measurement (0), for the answer of a cycle
+        just run on request, whose measurement is this cycle's however late the caller got to
+        read it (a lockstep loop descheduled for 100 ms on a loaded host is not a stale servo)."""
         values = self._mailbox.snapshot(self._last)
         if values is None:
             values = list(self._mailbox.state)
         self._last = values
-        now = time.monotonic() if now_s is None else now_s
         t_s = values[_S.T_S]
+        now = t_s if as_measured and math.isfinite(t_s) else (
+            time.monotonic() if now_s is None else now_s)
         age = now - t_s if math.isfinite(t_s) else math.inf
         health = ServoHealth(int(values[_S.HEALTH]))
         if self._stopped:
@@ -1041,7 +1046,7 @@ class TiltServo:
             if request_id is None:
                 raise ServoError(self.config.uri, "no service cycle pending")
             self._await_answer(request_id, "cycle", timeout_s)
-        return self.latest()
+        return self.latest(as_measured=True)
 
     def probe(self, timeout_s: float = 2.0) -> ServoIdentity:
         """Identify the servo (model, firmware, mode): through the servo process if started."""

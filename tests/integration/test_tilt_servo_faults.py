@@ -185,3 +185,30 @@ def test_that_a_lockstep_cycle_of_a_healthy_servo_is_asked_again_before_a_lost_r
         emu.set_fault(Fault.SILENT, replies=1)
         again = _cycle_or_error(servo)
         assert isinstance(again, ServoState) and again.ok
+
+
+def test_that_a_lockstep_cycle_read_late_is_this_cycles_measurement_not_stale(
+        tmp_path: Path) -> None:
+    """A lockstep loop descheduled between the servo process's answer and its own read (100 ms
+    and more on a loaded host) still has this cycle's measurement: fresh, not STALE. What it
+    reads later, outside a cycle, ages on the wall clock as before."""
+    emu = EmulatedMX28(BenchVehicle(max_tilt_rate_rad_s=100 * DEG), lock=threading.Lock(),
+                       link_path=tmp_path / "tilt-servo", drive_clock=True)
+    cfg = TiltServoConfig(uri=f"pty://{emu.path}?id=1", serve="on_request",
+                          rate_limit_goal=False)
+    with emu, TiltServo(cfg) as servo:
+        deadline = time.monotonic() + WAIT_S
+        first = _cycle_or_error(servo)  # "not connected" until the servo process has it
+        while not isinstance(first, ServoState) and time.monotonic() < deadline:
+            time.sleep(0.05)  # bounded: the servo process starts its SDK
+            first = _cycle_or_error(servo)
+        assert isinstance(first, ServoState) and first.ok
+        # Test: the cycle is answered at once; the loop reads it 0.3 s later (a descheduled
+        # process: the sleep stands for the host, not for a timing assumption)
+        servo.begin_cycle()
+        time.sleep(3 * cfg.stale_after_s)
+        state = servo.finish_cycle(WAIT_S)
+        # Assert
+        assert state.health is ServoHealth.OK and state.seq == first.seq + 1
+        assert state.age_s == 0.0
+        assert servo.latest().health is ServoHealth.STALE  # outside a cycle: the wall clock
