@@ -388,7 +388,7 @@ class FlightSession:
                 rate_limit_goal=not lockstep,
                 sdk_latency_timer_ms=250.0 if lockstep else 16.0,
                 # and a healthy servo's cycle is asked again twice before a missing reply is a
-                # fault (a CI run under a load of ~10 on 2 cores saw one servo fault in Exp. 2a)
+                # fault (an emulated servo starved by a loaded host is late, not faulty)
                 late_reply_retries=2 if lockstep else 0))
             with stop_signals_blocked():  # its process must not die of a stray Ctrl-C
                 _open_device("servo", servo_uri, servo.start)

@@ -139,8 +139,8 @@ class TiltServoConfig:
                                  "the servo's Moving Speed still bounds the motion)")
     late_reply_retries: int = spec(
         0, ge=0, le=5, doc="a requested cycle (on_request) of a servo that answered its last "
-        "cycle is tried this many "
-        "more times (after the resync wait) before a missing or garbled reply is reported "
+        "cycle is tried this many more times (after the resync wait) before a missing or "
+        "garbled reply is reported "
         "(lockstep: an emulated servo starved by a loaded host is late, not faulty; a servo "
         "already in fault is never retried, so its 2 Hz retries cost one timeout each)")
     assume_homed: bool = spec(True, doc="trust zero_offset_steps at start (else home() first)")
@@ -758,15 +758,11 @@ class _Worker:
                     if attempt == retries or isinstance(exc, _ReconfigureError):
                         self.answered_last_cycle = False
                         raise
-                    # late, not (yet) faulty: counted, not published; the late reply may
-                    # still come, so wait and flush as fail() does, then ask again
-                    bad = self.link.result_code(exc)
-                    self.values[_S.CORRUPT if bad is ServoHealth.CORRUPT_REPLY
-                                else _S.TIMEOUTS] += 1
+                    # late, not (yet) faulty: counted, not published; resync, ask again
+                    self._count_failure(exc)
                     log.debug("%s (retrying)", exc)
-                    if self.stop.wait(self.cfg.resync_quiet_s):
+                    if not self._resync():
                         raise
-                    self.link.flush()
             self.answered_last_cycle = True
             self.publish(health, errors)
             return int(health)
@@ -774,24 +770,35 @@ class _Worker:
 
     def fail(self, exc: ServoCommError) -> None:
         self.recovering = True
-        health = self.link.result_code(exc)
-        slot = _S.CORRUPT if health is ServoHealth.CORRUPT_REPLY else _S.TIMEOUTS
-        if health is not ServoHealth.DISCONNECTED:
-            self.values[slot] += 1
+        health = self._count_failure(exc)
         self.publish(health)
         log.debug("%s", exc)
         if health is ServoHealth.DISCONNECTED:
             self.configured = False
             self.next_reconnect = time.monotonic() + self.cfg.reconnect_period_s
             return
-        # A late reply could still arrive and answer the next request: wait, then flush.
+        self._resync()
+
+    def _count_failure(self, exc: ServoCommError) -> ServoHealth:
+        """Count a failed transaction (timeouts or corrupt replies); its health."""
+        health = self.link.result_code(exc)
+        if health is not ServoHealth.DISCONNECTED:
+            self.values[_S.CORRUPT if health is ServoHealth.CORRUPT_REPLY
+                        else _S.TIMEOUTS] += 1
+        return health
+
+    def _resync(self) -> bool:
+        """A late reply could still arrive and answer the next request: wait, then flush.
+        False when stopping, or when the port died while we waited."""
         if self.stop.wait(self.cfg.resync_quiet_s):
-            return
+            return False
         try:
             self.link.flush()
         except Exception:  # the port died while we waited
             self.link.drop()
             self.configured = False
+            return False
+        return True
 
     def run(self) -> None:
         period = 1.0 / self.cfg.rate_hz

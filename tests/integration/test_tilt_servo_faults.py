@@ -144,6 +144,17 @@ def _cycle_or_error(servo: TiltServo) -> ServoState | ServoCommError:
         return exc
 
 
+def _first_cycle(servo: TiltServo) -> ServoState:
+    """The first cycle on request: "not connected" until the servo process has the port."""
+    deadline = time.monotonic() + WAIT_S
+    first = _cycle_or_error(servo)
+    while not isinstance(first, ServoState) and time.monotonic() < deadline:
+        time.sleep(0.05)  # bounded: the servo process starts its SDK
+        first = _cycle_or_error(servo)
+    assert isinstance(first, ServoState) and first.ok
+    return first
+
+
 @pytest.mark.parametrize("retries", [2, 0])
 def test_that_a_lockstep_cycle_of_a_healthy_servo_is_asked_again_before_a_lost_reply_is_a_fault(
         tmp_path: Path, retries: int) -> None:
@@ -156,12 +167,7 @@ def test_that_a_lockstep_cycle_of_a_healthy_servo_is_asked_again_before_a_lost_r
     cfg = TiltServoConfig(uri=f"pty://{emu.path}?id=1", serve="on_request",
                           rate_limit_goal=False, late_reply_retries=retries)
     with emu, TiltServo(cfg) as servo:
-        deadline = time.monotonic() + WAIT_S
-        first = _cycle_or_error(servo)  # "not connected" until the servo process has it
-        while not isinstance(first, ServoState) and time.monotonic() < deadline:
-            time.sleep(0.05)  # bounded: the servo process starts its SDK
-            first = _cycle_or_error(servo)
-        assert isinstance(first, ServoState) and first.ok
+        first = _first_cycle(servo)
         # Test 1: one reply lost
         emu.set_fault(Fault.SILENT, replies=1)
         one_lost = _cycle_or_error(servo)
@@ -197,12 +203,7 @@ def test_that_a_lockstep_cycle_read_late_is_this_cycles_measurement_not_stale(
     cfg = TiltServoConfig(uri=f"pty://{emu.path}?id=1", serve="on_request",
                           rate_limit_goal=False)
     with emu, TiltServo(cfg) as servo:
-        deadline = time.monotonic() + WAIT_S
-        first = _cycle_or_error(servo)  # "not connected" until the servo process has it
-        while not isinstance(first, ServoState) and time.monotonic() < deadline:
-            time.sleep(0.05)  # bounded: the servo process starts its SDK
-            first = _cycle_or_error(servo)
-        assert isinstance(first, ServoState) and first.ok
+        first = _first_cycle(servo)
         # Test: the cycle is answered at once; the loop reads it 0.3 s later (a descheduled
         # process: the sleep stands for the host, not for a timing assumption)
         servo.begin_cycle()
