@@ -347,3 +347,270 @@ def update_step(x: FloatArray, P: FloatArray, q_ref: FloatArray, z: FloatArray, 
     x_out[6] = x_out[7] = x_out[8] = 0.0
     _condition(P_out, min_variance, max_pos_variance)
     return 0, nis
+
+
+# -- the whole predict with the fusion horizon (``Ukf.predict``'s common path, one call) ---------
+# Output-predictor rows (``ukf._OutputPredictor``): time, gyro and accelerometer inputs, and the
+# output position, velocity and attitude at that time, stored without the lazy correction
+# ``corr`` = (a (3), b (3), dq (4)): the output at time t is p + a + b t, v + b, dq (x) q.
+ROW_T, ROW_GYRO, ROW_ACCEL, ROW_POS, ROW_VEL, ROW_Q, ROW_WIDTH = 0, 1, 4, 7, 10, 13, 17
+
+
+@_jit
+def process_noise(dt: float, rates: FloatArray, Q: FloatArray) -> None:
+    """``Ukf._process_noise`` into Q; ``rates``: accelerometer, gyro, gyro-bias walk and
+    accelerometer-bias walk variances per second (two-sided densities squared)."""
+    Q[:, :] = 0.0
+    qa = rates[0]
+    pp, pv, vv = qa * dt ** 3 / 3.0, qa * dt ** 2 / 2.0, qa * dt
+    aa, gg, bb = rates[1] * dt, rates[2] * dt, rates[3] * dt
+    for i in range(3):
+        Q[i, i] = pp
+        Q[i, 3 + i] = Q[3 + i, i] = pv
+        Q[3 + i, 3 + i] = vv
+        Q[6 + i, 6 + i] = aa
+        Q[9 + i, 9 + i] = gg
+        Q[12 + i, 12 + i] = bb
+
+
+@_jit
+def _corrected_row(buf: FloatArray, r: int, corr: FloatArray, out: FloatArray) -> None:
+    """out = (p, v, q) of row r with the correction applied."""
+    t = buf[r, ROW_T]
+    for i in range(3):
+        out[i] = buf[r, ROW_POS + i] + corr[i] + corr[3 + i] * t
+        out[3 + i] = buf[r, ROW_VEL + i] + corr[3 + i]
+    q = ROW_Q
+    out[6], out[7], out[8], out[9] = _mul(corr[6], corr[7], corr[8], corr[9], buf[r, q],
+                                          buf[r, q + 1], buf[r, q + 2], buf[r, q + 3])
+
+
+@_jit
+def _reset_correction(corr: FloatArray) -> None:
+    corr[:] = 0.0
+    corr[6] = 1.0
+
+
+@_jit
+def _push_history(t: float, g: FloatArray, a: FloatArray, x: FloatArray, P: FloatArray,
+                  q: FloatArray, hist_t: FloatArray, hist_x: FloatArray, hist_P: FloatArray,
+                  hist_q: FloatArray, hist_gyro: FloatArray, hist_accel: FloatArray,
+                  hij: Any) -> None:
+    n = hist_t.shape[0]
+    i = (hij[0] + 1) % n
+    hij[0] = i
+    hij[1] = min(hij[1] + 1, n)
+    hist_t[i] = t
+    hist_gyro[i, :] = g
+    hist_accel[i, :] = a
+    hist_x[i, :] = x
+    hist_P[i, :, :] = P
+    hist_q[i, :] = q
+    hij[2] += 1             # filter steps taken in compiled code (Ukf.filter_steps)
+
+
+@_jit
+def _step(x: FloatArray, P: FloatArray, q_ref: FloatArray, dt: float, g: FloatArray,
+          a: FloatArray, rates: FloatArray, Q: FloatArray, gravity_w: FloatArray,
+          Wm: FloatArray, Wc: FloatArray, scale: float, min_variance: float,
+          max_pos_variance: float, sig: FloatArray, work: FloatArray, U: FloatArray,
+          devT: FloatArray, q_tmp: FloatArray, x_out: FloatArray, P_out: FloatArray,
+          q_out: FloatArray) -> int:
+    """One filter predict (``Ukf._filter_step``), written into x, P, q_ref when it succeeds."""
+    dt = round(dt, 9)       # as Ukf._propagate: the repeated IMU period, to the nanosecond
+    process_noise(dt, rates, Q)
+    st = predict_step(x, P, Q, dt, g, a, q_ref, gravity_w, Wm, Wc, scale, min_variance,
+                      max_pos_variance, sig, work, U, devT, q_tmp, x_out, P_out, q_out)
+    if st != 0:
+        return st
+    x[:] = x_out
+    P[:, :] = P_out
+    q_ref[:] = q_out
+    return 0
+
+
+@_jit
+def horizon_predict(t: float, dt: float, g_in: FloatArray, a_in: FloatArray, target_t: float,
+                    direct: bool, t_filter: float, x: FloatArray, P: FloatArray,
+                    q_ref: FloatArray, buf: FloatArray, ij: Any, corr: FloatArray,
+                    gravity_m_s2: float, hist_t: FloatArray, hist_x: FloatArray,
+                    hist_P: FloatArray, hist_q: FloatArray, hist_gyro: FloatArray,
+                    hist_accel: FloatArray, hij: Any, rates: FloatArray, Q: FloatArray,
+                    gravity_w: FloatArray, Wm: FloatArray, Wc: FloatArray, scale: float,
+                    min_variance: float, max_pos_variance: float, sig: FloatArray,
+                    work: FloatArray, U: FloatArray, devT: FloatArray, q_tmp: FloatArray,
+                    x_out: FloatArray, P_out: FloatArray, q_out: FloatArray,
+                    newest: FloatArray) -> tuple[int, float]:
+    """``Ukf.predict`` after its input checks, for a finite filter and a queue with room:
+    ``direct`` (no horizon, empty queue) one filter step to t; else queue the input with its
+    output state and feed the filter every queued input up to ``target_t``, then re-base the
+    outputs on it. x, P, q_ref, the queue and the history ring are updated in place.
+
+    -> (status, filter time). Status 0: done. 1 (P not positive definite) or 2 (a non-finite
+    result): the step of the queue's oldest input (of t when ``direct``) was not taken and
+    nothing of it is written; the outputs are re-based on the steps taken; the caller takes
+    it from there (its repair and non-finite paths). ``newest`` = the output (p, v, q) at the
+    newest input, valid with status 0."""
+    if direct:
+        st = _step(x, P, q_ref, dt, g_in, a_in, rates, Q, gravity_w, Wm, Wc, scale,
+                   min_variance, max_pos_variance, sig, work, U, devT, q_tmp, x_out, P_out,
+                   q_out)
+        if st != 0:
+            return st, t_filter
+        _push_history(t, g_in, a_in, x, P, q_ref, hist_t, hist_x, hist_P, hist_q, hist_gyro,
+                      hist_accel, hij)
+        for i in range(6):
+            newest[i] = x[i]
+        for i in range(4):
+            newest[6 + i] = q_ref[i]
+        return 0, t
+    cap = buf.shape[0]
+    head, count = ij[0], ij[1]
+    # queue the input with the output state propagated to t (ukf._OutputPredictor.push)
+    if count == 0:
+        _reset_correction(corr)
+        for i in range(6):
+            newest[i] = x[i]
+        for i in range(4):
+            newest[6 + i] = q_ref[i]
+    else:
+        _corrected_row(buf, (head + count - 1) % cap, corr, newest)
+    qw, qx, qy, qz = newest[6], newest[7], newest[8], newest[9]
+    sa, sb, sc = a_in[0] - x[12], a_in[1] - x[13], a_in[2] - x[14]
+    tx, ty, tz = 2.0 * (qy * sc - qz * sb), 2.0 * (qz * sa - qx * sc), 2.0 * (qx * sb - qy * sa)
+    ax = sa + qw * tx + (qy * tz - qz * ty)
+    ay = sb + qw * ty + (qz * tx - qx * tz)
+    az = sc + qw * tz + (qx * ty - qy * tx) - gravity_m_s2
+    h = 0.5 * dt * dt
+    r = (head + count) % cap
+    buf[r, ROW_T] = t
+    for i in range(3):
+        buf[r, ROW_GYRO + i] = g_in[i]
+        buf[r, ROW_ACCEL + i] = a_in[i]
+    acc = (ax, ay, az)
+    for i in range(3):
+        buf[r, ROW_POS + i] = newest[i] + dt * newest[3 + i] + h * acc[i] - corr[i] \
+            - corr[3 + i] * t
+        buf[r, ROW_VEL + i] = newest[3 + i] + dt * acc[i] - corr[3 + i]
+    _mul_exp_normalized(newest[6:10], (g_in[0] - x[9]) * dt, (g_in[1] - x[10]) * dt,
+                        (g_in[2] - x[11]) * dt, q_tmp)
+    q = ROW_Q
+    buf[r, q], buf[r, q + 1], buf[r, q + 2], buf[r, q + 3] = _mul(
+        corr[6], -corr[7], -corr[8], -corr[9], q_tmp[0], q_tmp[1], q_tmp[2], q_tmp[3])
+    count += 1
+    # feed the filter the inputs due (Ukf._advance_filter)
+    last = -1
+    st = 0
+    while count > 0 and buf[head, ROW_T] <= target_t + 1e-9:
+        te = buf[head, ROW_T]
+        st = _step(x, P, q_ref, te - t_filter, buf[head, ROW_GYRO:ROW_GYRO + 3],
+                   buf[head, ROW_ACCEL:ROW_ACCEL + 3], rates, Q, gravity_w, Wm, Wc, scale,
+                   min_variance, max_pos_variance, sig, work, U, devT, q_tmp, x_out, P_out,
+                   q_out)
+        if st != 0:
+            break
+        _push_history(te, buf[head, ROW_GYRO:ROW_GYRO + 3], buf[head, ROW_ACCEL:ROW_ACCEL + 3],
+                      x, P, q_ref, hist_t, hist_x, hist_P, hist_q, hist_gyro, hist_accel, hij)
+        t_filter = te
+        last = head
+        head = (head + 1) % cap
+        count -= 1
+    ij[0], ij[1] = head, count
+    if last >= 0:
+        # re-base the outputs (Ukf._correct_outputs): the output at the filter's time is the
+        # filter's state (the row is still in the buffer, only popped)
+        if count == 0:
+            _reset_correction(corr)
+        else:
+            _corrected_row(buf, last, corr, newest)
+            t_ref = buf[last, ROW_T]
+            for i in range(3):
+                dv = x[3 + i] - newest[3 + i]
+                corr[i] = corr[i] + (x[i] - newest[i]) - dv * t_ref
+                corr[3 + i] = corr[3 + i] + dv
+            dw, dx, dy, dz = _mul(q_ref[0], q_ref[1], q_ref[2], q_ref[3],
+                                  newest[6], -newest[7], -newest[8], -newest[9])
+            w, a, b, c = _mul(dw, dx, dy, dz, corr[6], corr[7], corr[8], corr[9])
+            n = math.sqrt(w * w + a * a + b * b + c * c)
+            corr[6], corr[7], corr[8], corr[9] = w / n, a / n, b / n, c / n
+    if count == 0:
+        for i in range(6):
+            newest[i] = x[i]
+        for i in range(4):
+            newest[6 + i] = q_ref[i]
+    else:
+        _corrected_row(buf, (head + count - 1) % cap, corr, newest)
+    return st, t_filter
+
+
+
+@_jit
+def fuse_now(t_c: float, pos: FloatArray, q_m: FloatArray, shift: bool, t_filter: float,
+             x: FloatArray, P: FloatArray, q_ref: FloatArray, R: FloatArray, meas_idx: Any,
+             gate_nis: float, hist_x: FloatArray, hist_P: FloatArray, hist_q: FloatArray,
+             hist_gyro: FloatArray, hij: Any, buf: FloatArray, ij: Any, corr: FloatArray,
+             Wm: FloatArray, Wc: FloatArray, scale: float, min_variance: float,
+             max_pos_variance: float, sig: FloatArray, work: FloatArray, U: FloatArray,
+             x_out: FloatArray, P_out: FloatArray, q_out: FloatArray, y: FloatArray,
+             S: FloatArray, z: FloatArray, pose_out: FloatArray, newest: FloatArray
+             ) -> tuple[int, float]:
+    """``Ukf._fuse_now`` in one call, for a finite filter: the pose moved to the filter's
+    time (``shift``), the gated update, the history entry rewritten and the outputs re-based.
+
+    -> (status, NIS). 0: fused (x, P, q_ref, the history head and the correction updated);
+    1: P not positive definite, nothing written (the caller repairs); 2: refused by the gate
+    or not finite, nothing written. ``pose_out`` = the pose as fused or refused (p, q)."""
+    head = hij[0]
+    dt_s = t_filter - t_c
+    for i in range(3):
+        pose_out[i] = pos[i]
+    for i in range(4):
+        pose_out[3 + i] = q_m[i]
+    if shift and abs(dt_s) > 1e-9:        # as Ukf._shift_pose
+        for i in range(3):
+            pose_out[i] = pos[i] + dt_s * x[3 + i]
+        _mul_exp_normalized(q_m, dt_s * (hist_gyro[head, 0] - x[9]),
+                            dt_s * (hist_gyro[head, 1] - x[10]),
+                            dt_s * (hist_gyro[head, 2] - x[11]), pose_out[3:7])
+    # z = (p, Log(q_ref^-1 (x) q)), as quaternion.log_relative_single
+    w, a, b, c = q_ref[0], q_ref[1], q_ref[2], q_ref[3]
+    bw, bx, by, bz = pose_out[3], pose_out[4], pose_out[5], pose_out[6]
+    rw = w * bw + a * bx + b * by + c * bz
+    rx = w * bx - a * bw - b * bz + c * by
+    ry = w * by + a * bz - b * bw - c * bx
+    rz = w * bz - a * by + b * bx - c * bw
+    s = math.sqrt(rx * rx + ry * ry + rz * rz)
+    for i in range(3):
+        z[i] = pose_out[i]
+    if s == 0.0:
+        z[3] = z[4] = z[5] = 0.0
+    else:
+        f = 2.0 * math.atan2(s, abs(rw)) / s * (1.0 if rw >= 0.0 else -1.0)
+        z[3], z[4], z[5] = rx * f, ry * f, rz * f
+    st, nis = update_step(x, P, q_ref, z, R, meas_idx, Wm, Wc, scale, min_variance,
+                          max_pos_variance, sig, work, U, x_out, P_out, q_out, y, S)
+    if st == 1:
+        return 1, nis
+    if st == 2 or not nis <= gate_nis:
+        return 2, nis
+    # the outputs were built on the filter's state before the update (Ukf._correct_outputs)
+    head_q, count = ij[0], ij[1]
+    if count > 0:
+        t_ref = t_filter
+        for i in range(3):
+            dv = x_out[3 + i] - x[3 + i]
+            corr[i] = corr[i] + (x_out[i] - x[i]) - dv * t_ref
+            corr[3 + i] = corr[3 + i] + dv
+        dw, dx, dy, dz = _mul(q_out[0], q_out[1], q_out[2], q_out[3],
+                              q_ref[0], -q_ref[1], -q_ref[2], -q_ref[3])
+        w, a, b, c = _mul(dw, dx, dy, dz, corr[6], corr[7], corr[8], corr[9])
+        n = math.sqrt(w * w + a * a + b * b + c * c)
+        corr[6], corr[7], corr[8], corr[9] = w / n, a / n, b / n, c / n
+        _corrected_row(buf, (head_q + count - 1) % buf.shape[0], corr, newest)
+    x[:] = x_out
+    P[:, :] = P_out
+    q_ref[:] = q_out
+    hist_x[head, :] = x
+    hist_P[head, :, :] = P
+    hist_q[head, :] = q_ref
+    return 0, nis

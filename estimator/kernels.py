@@ -20,7 +20,7 @@ The MoCap measurement is ``z = [p_m, Log(q_ref^-1 (x) q_m)]`` with ``h(x) = [p, 
 from __future__ import annotations
 
 import functools
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -199,6 +199,9 @@ class CompiledKernel:
         self._U = np.empty((n, n))
         self._meas_idx = MEAS_IDX.astype(np.int64)
         self._q_tmp = np.empty(4)
+        self._Q = np.zeros((n, n))
+        self._x_out, self._P_out, self._q_out = np.empty(n), np.empty((n, n)), np.empty(4)
+        self._y, self._S, self._z = np.empty(6), np.empty((6, 6)), np.empty(6)
         self._warm_up()
 
     def _warm_up(self) -> None:
@@ -209,6 +212,57 @@ class CompiledKernel:
         out = self.predict_step(x, P, q, Q, 0.002, np.zeros(3), -self.gravity_w, 1e-12, 1.0)
         if out is not None:
             self.update_step(out[0], out[1], out[2], np.zeros(6), R, 1e-12, 1.0)
+        # the whole predict, with the argument types of Ukf._compiled_predict
+        n_hist, cap = 4, 4
+        hist = (np.zeros(n_hist), np.zeros((n_hist, self.n)), np.zeros((n_hist, self.n, self.n)),
+                np.zeros((n_hist, 4)), np.zeros((n_hist, 3)), np.zeros((n_hist, 3)))
+        buf, ij = np.zeros((cap, compiled.ROW_WIDTH)), np.zeros(2, dtype=np.int64)
+        corr = np.zeros(10)
+        corr[6] = 1.0
+        rates = np.full(4, 1e-6)
+        for shift in (True, False):
+            self.fuse_now(0.001, np.zeros(3), q.copy(), shift, 0.002, x.copy(), P.copy(),
+                          q.copy(), R, 1e9, hist[1], hist[2], hist[3], hist[4],
+                          np.zeros(3, dtype=np.int64), buf, ij, corr, 1e-12, 1.0, np.zeros(7),
+                          np.zeros(10))
+        for direct in (True, False):
+            self.horizon_predict(0.002, 0.002, np.zeros(3), -self.gravity_w, 0.0, direct, 0.0,
+                                 x.copy(), P.copy(), q.copy(), buf, ij, corr,
+                                 float(-self.gravity_w[2]), *hist,
+                                 np.zeros(3, dtype=np.int64), rates, 1e-12, 1.0, np.zeros(10))
+
+    def fuse_now(self, t_c: float, pos: FloatArray, q_m: FloatArray, shift: bool,
+                 t_filter: float, x: FloatArray, P: FloatArray, q_ref: FloatArray,
+                 R: FloatArray, gate_nis: float, hist_x: FloatArray, hist_P: FloatArray,
+                 hist_q: FloatArray, hist_gyro: FloatArray, hij: npt.NDArray[Any],
+                 buf: FloatArray, ij: npt.NDArray[Any], corr: FloatArray, min_variance: float,
+                 max_pos_variance: float, pose_out: FloatArray, newest: FloatArray
+                 ) -> tuple[int, float]:
+        """``Ukf._fuse_now`` in one call (see :func:`compiled.fuse_now`) -> (status, NIS)."""
+        status, nis = compiled.fuse_now(
+            t_c, pos, q_m, shift, t_filter, x, P, q_ref, R, self._meas_idx, gate_nis, hist_x,
+            hist_P, hist_q, hist_gyro, hij, buf, ij, corr, self.Wm, self.Wc, self.scale,
+            min_variance, max_pos_variance, self._sig, self._work, self._U, self._x_out,
+            self._P_out, self._q_out, self._y, self._S, self._z, pose_out, newest)
+        return int(status), float(nis)
+
+    def horizon_predict(self, t: float, dt: float, g_in: FloatArray, a_in: FloatArray,
+                        target_t: float, direct: bool, t_filter: float, x: FloatArray,
+                        P: FloatArray, q_ref: FloatArray, buf: FloatArray, ij: npt.NDArray[Any],
+                        corr: FloatArray, gravity_m_s2: float, hist_t: FloatArray,
+                        hist_x: FloatArray, hist_P: FloatArray, hist_q: FloatArray,
+                        hist_gyro: FloatArray, hist_accel: FloatArray, hij: npt.NDArray[Any],
+                        rates: FloatArray, min_variance: float, max_pos_variance: float,
+                        newest: FloatArray) -> tuple[int, float]:
+        """``Ukf.predict``'s filter step or queue-and-advance in one call (see
+        :func:`compiled.horizon_predict`) -> (status, filter time)."""
+        status, t_f = compiled.horizon_predict(
+            t, dt, g_in, a_in, target_t, direct, t_filter, x, P, q_ref, buf, ij, corr,
+            gravity_m_s2, hist_t, hist_x, hist_P, hist_q, hist_gyro, hist_accel, hij, rates,
+            self._Q, self.gravity_w, self.Wm, self.Wc, self.scale, min_variance,
+            max_pos_variance, self._sig, self._work, self._U, self._dev, self._q_tmp,
+            self._x_out, self._P_out, self._q_out, newest)
+        return int(status), float(t_f)
 
     def predict_step(self, x: FloatArray, P: FloatArray, q_ref: FloatArray, Q: FloatArray,
                      dt: float, gyro_rad_s: FloatArray, accel_m_s2: FloatArray,

@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import enum
 import math
-from collections import deque
 from collections.abc import Sequence
 from typing import Literal, NamedTuple
 
@@ -162,61 +161,96 @@ class _OutputPredictor:
     Corrections (the filter's state minus the output at the filter's time, see
     :meth:`Ukf._correct_outputs`) are accumulated lazily instead of rewriting every entry:
     the true output at time t is ``p + a + b t``, ``v + b``, ``dq (x) q`` of the stored one.
+    The queue is a ring of rows (:data:`compiled.ROW_WIDTH` floats: time, inputs, stored
+    output) and the correction an array (a, b, dq), so that the compiled predict
+    (:func:`compiled.horizon_predict`) works on the same storage as these methods.
     """
 
     def __init__(self, gravity_m_s2: float, capacity: int) -> None:
         self._g = gravity_m_s2
         self._capacity = capacity
-        self._queue: deque[_Pending] = deque()
-        self._reset()
+        self.buf = np.zeros((capacity, compiled.ROW_WIDTH))
+        self.ij = np.zeros(2, dtype=np.int64)      # head (oldest row), count
+        self.corr = np.zeros(10)                    # a (3), b (3), dq (4)
+        self.corr[6] = 1.0
+        # the corrected newest output, kept until the queue or the correction changes
+        self._newest: tuple[Vec3Tuple, Vec3Tuple, QuatTuple] | None = None
 
     def _reset(self) -> None:
-        self._a: Vec3Tuple = (0.0, 0.0, 0.0)
-        self._b: Vec3Tuple = (0.0, 0.0, 0.0)
-        self._dq: QuatTuple = (1.0, 0.0, 0.0, 0.0)
+        self.corr[:] = 0.0
+        self.corr[6] = 1.0
 
     def __bool__(self) -> bool:
-        return bool(self._queue)
+        return self.ij.item(1) > 0
+
+    def __len__(self) -> int:
+        return self.ij.item(1)
 
     def full(self) -> bool:
-        return len(self._queue) >= self._capacity
+        return self.ij.item(1) >= self._capacity
 
     def clear(self) -> None:
-        self._queue.clear()
+        self.ij[1] = 0
         self._reset()
+        self._newest = None
 
     def oldest_t_s(self) -> float:
-        return self._queue[0].t_s if self._queue else math.inf
+        head, count = self.ij.tolist()
+        return self.buf.item(head, 0) if count else math.inf
 
     def popleft(self) -> _Pending:
-        return self._queue.popleft()
+        head, count = self.ij.tolist()
+        if not count:
+            raise IndexError("pop from an empty output predictor")
+        r = self.buf[head].tolist()
+        self.ij[0], self.ij[1] = (head + 1) % self._capacity, count - 1
+        self._newest = None
+        return _Pending(r[0], np.array(r[1:4]), np.array(r[4:7]), (r[7], r[8], r[9]),
+                        (r[10], r[11], r[12]), (r[13], r[14], r[15], r[16]))
 
     def corrected(self, e: _Pending) -> tuple[Vec3Tuple, Vec3Tuple, QuatTuple]:
-        a, b, t = self._a, self._b, e.t_s
-        p, v = e.pos, e.vel
-        return ((p[0] + a[0] + b[0] * t, p[1] + a[1] + b[1] * t, p[2] + a[2] + b[2] * t),
-                (v[0] + b[0], v[1] + b[1], v[2] + b[2]), mul_tuple(self._dq, e.q))
+        return self._corrected(e.t_s, e.pos, e.vel, e.q)
+
+    def _corrected(self, t: float, p: Sequence[float], v: Sequence[float],
+                   q: Sequence[float]) -> tuple[Vec3Tuple, Vec3Tuple, QuatTuple]:
+        c = self.corr.tolist()
+        return ((p[0] + c[0] + c[3] * t, p[1] + c[1] + c[4] * t, p[2] + c[2] + c[5] * t),
+                (v[0] + c[3], v[1] + c[4], v[2] + c[5]), mul_tuple(c[6:10], q))
 
     def newest(self) -> tuple[Vec3Tuple, Vec3Tuple, QuatTuple]:
-        return self.corrected(self._queue[-1])
+        if self._newest is None:
+            head, count = self.ij.tolist()
+            r = self.buf[(head + count - 1) % self._capacity].tolist()
+            self._newest = self._corrected(r[0], r[7:10], r[10:13], r[13:17])
+        return self._newest
+
+    def clear_newest(self) -> None:
+        self._newest = None
+
+    def set_newest(self, out: FloatArray) -> None:
+        """The compiled predict's corrected newest output (p, v, q), while the queue holds
+        inputs."""
+        o = out.tolist()
+        self._newest = ((o[0], o[1], o[2]), (o[3], o[4], o[5]), (o[6], o[7], o[8], o[9]))
 
     def correct(self, dp: Vec3Tuple, dv: Vec3Tuple, t_ref: float, dq: QuatTuple) -> None:
         """Add dp + dv (t - t_ref) to the positions, dv to the velocities, turn by dq."""
-        if not self._queue:
+        self._newest = None
+        if not self:
             self._reset()
             return
-        a, b = self._a, self._b
-        self._a = (a[0] + dp[0] - dv[0] * t_ref, a[1] + dp[1] - dv[1] * t_ref,
-                   a[2] + dp[2] - dv[2] * t_ref)
-        self._b = (b[0] + dv[0], b[1] + dv[1], b[2] + dv[2])
+        c = self.corr.tolist()
+        self.corr[0:6] = (c[0] + dp[0] - dv[0] * t_ref, c[1] + dp[1] - dv[1] * t_ref,
+                          c[2] + dp[2] - dv[2] * t_ref, c[3] + dv[0], c[4] + dv[1], c[5] + dv[2])
         # unit, so that repeated corrections never change the outputs' norm
-        self._dq = normalized_tuple(mul_tuple(dq, self._dq))
+        self.corr[6:10] = normalized_tuple(mul_tuple(dq, c[6:10]))
 
     def push(self, t: float, dt: float, gyro_in: FloatArray, accel_in: FloatArray,
              p0: Sequence[float], v0: Sequence[float], q0: Sequence[float],
              omega_b: Sequence[float], specific_b: Sequence[float]) -> None:
         """Propagate the (corrected) output (p0, v0, q0) over dt and queue it at t."""
-        if not self._queue:
+        head, count = self.ij.tolist()
+        if not count:
             self._reset()
         ax, ay, az = rotate_tuple(q0, specific_b)
         az -= self._g
@@ -225,11 +259,16 @@ class _OutputPredictor:
              p0[2] + dt * v0[2] + h * az)
         v = (v0[0] + dt * ax, v0[1] + dt * ay, v0[2] + dt * az)
         q = mul_exp_tuple(q0, omega_b[0] * dt, omega_b[1] * dt, omega_b[2] * dt)
-        a, b = self._a, self._b      # store without the correction
-        self._queue.append(_Pending(
-            t, gyro_in, accel_in,
-            (p[0] - a[0] - b[0] * t, p[1] - a[1] - b[1] * t, p[2] - a[2] - b[2] * t),
-            (v[0] - b[0], v[1] - b[1], v[2] - b[2]), mul_tuple(conj_tuple(self._dq), q)))
+        c = self.corr.tolist()      # store without the correction
+        row = self.buf[(head + count) % self._capacity]
+        row[0] = t
+        row[1:4] = gyro_in
+        row[4:7] = accel_in
+        row[7:13] = (p[0] - c[0] - c[3] * t, p[1] - c[1] - c[4] * t, p[2] - c[2] - c[5] * t,
+                     v[0] - c[3], v[1] - c[4], v[2] - c[5])
+        row[13:17] = mul_tuple(conj_tuple(c[6:10]), q)
+        self.ij[1] = count + 1
+        self._newest = None
 
 
 class Ukf:
@@ -279,8 +318,9 @@ class Ukf:
         self._hist_q = np.zeros((n_hist, 4))
         self._hist_gyro = np.zeros((n_hist, 3))
         self._hist_accel = np.zeros((n_hist, 3))
-        self._hist_head = 0
-        self._hist_len = 0
+        # head (newest), length, and the filter steps the compiled predict took
+        self._hij = np.zeros(3, dtype=np.int64)
+        self._steps_py = 0      # filter steps (UKF time updates) taken by _propagate
         # force observer (isotropic variance: the accelerometer noise is isotropic)
         self._force_w: Vec3Tuple = (0.0, 0.0, 0.0)
         self._force_var = cfg.init_force_sigma_n ** 2
@@ -290,6 +330,15 @@ class Ukf:
         self._pending = _OutputPredictor(cfg.gravity_m_s2,
                                          2 * math.ceil(cfg.max_fusion_delay_s
                                                        * cfg.max_imu_rate_hz) + 8)
+        # the process-noise variance rates (per second of integration) and the newest output
+        # of the compiled predict
+        self._noise_rates = np.array([
+            TWO_SIDED * cfg.accel_noise_m_s2_sqrt_hz ** 2,
+            TWO_SIDED * cfg.gyro_noise_rad_s_sqrt_hz ** 2,
+            TWO_SIDED * cfg.gyro_bias_walk_rad_s2_sqrt_hz ** 2,
+            TWO_SIDED * cfg.accel_bias_walk_m_s3_sqrt_hz ** 2])
+        self._newest_out = np.zeros(10)
+        self._pose_out = np.zeros(7)
         self._now_s = math.nan
         self._latencies = [math.inf] * cfg.latency_window
         self._latency_i = 0
@@ -307,6 +356,23 @@ class Ukf:
         self._imu_invalid = 0
         self._poses_invalid = 0
         self._last_nis = math.nan
+
+    # the history ring's head and length live in an array the compiled predict updates
+    @property
+    def _hist_head(self) -> int:
+        return self._hij.item(0)
+
+    @_hist_head.setter
+    def _hist_head(self, i: int) -> None:
+        self._hij[0] = i
+
+    @property
+    def _hist_len(self) -> int:
+        return self._hij.item(1)
+
+    @_hist_len.setter
+    def _hist_len(self, n: int) -> None:
+        self._hij[1] = n
 
     # -- public API -----------------------------------------------------------------------------
     @property
@@ -388,24 +454,55 @@ class Ukf:
         if not dt > 0.0:
             self._imu_out_of_order += 1
             return
-        if self._prev_gyro is None or self._prev_accel is None:
-            g_in, a_in = gyro, accel
-        elif self.cfg.imu_integration == "trapezoid":   # floats: 4 numpy operations cost more
-            (pgx, pgy, pgz), (pax, pay, paz) = self._prev_f
+        # fresh contiguous arrays (the compiled predict's argument types never change)
+        if self._prev_gyro is not None and self.cfg.imu_integration == "trapezoid":
+            (pgx, pgy, pgz), (pax, pay, paz) = self._prev_f   # floats: cheaper than numpy
             g_in = np.array((0.5 * (pgx + gx), 0.5 * (pgy + gy), 0.5 * (pgz + gz)))
             a_in = np.array((0.5 * (pax + ax), 0.5 * (pay + ay), 0.5 * (paz + az)))
         else:
-            g_in, a_in = gyro, accel
+            g_in, a_in = np.array((gx, gy, gz)), np.array((ax, ay, az))
         self._prev_gyro, self._prev_accel, self._last_gyro = gyro, accel, gyro
         self._prev_f = ((gx, gy, gz), (ax, ay, az))
         self._now_s = t
-        if self._delay_s == 0.0 and not self._pending:
-            self._filter_step(t, dt, g_in, a_in)       # the filter is the output
+        pending = self._pending
+        direct = self._delay_s == 0.0 and not pending      # the filter is the output
+        if self._step_kernel is not None and not self._nonfinite and not pending.full():
+            if self._compiled_predict(t, dt, g_in, a_in, direct) != 0:
+                # a repair or a non-finite step: the Python path from where it stopped
+                if direct:
+                    self._filter_step(t, dt, g_in, a_in)
+                else:
+                    self._advance_filter(t - self._delay_s)
+        elif direct:
+            self._filter_step(t, dt, g_in, a_in)
         else:
             self._queue_input(t, dt, g_in, a_in)
             self._advance_filter(t - self._delay_s)
         if self.cfg.force_observer:
             self._observe_force(dt, accel, force_cmd_b_n)
+
+    def _compiled_predict(self, t: float, dt: float, g_in: FloatArray, a_in: FloatArray,
+                          direct: bool) -> int:
+        """The same sequence as the Python path (a direct filter step, or queue the input and
+        advance the filter to the horizon), in one compiled call; its status (0: done)."""
+        step = self._step_kernel
+        assert step is not None
+        cfg = self.cfg
+        pending = self._pending
+        # C-contiguous float64 state: the compiled signature (a new layout would compile)
+        self._x = x = np.ascontiguousarray(self._x)
+        self._P = P = np.ascontiguousarray(self._P)
+        self._q_ref = q = np.ascontiguousarray(self._q_ref)
+        status, self._t_s = step.horizon_predict(
+            t, dt, g_in, a_in, t - self._delay_s, direct, self._t_s, x, P, q, pending.buf,
+            pending.ij, pending.corr, cfg.gravity_m_s2, self._hist_t, self._hist_x,
+            self._hist_P, self._hist_q, self._hist_gyro, self._hist_accel, self._hij,
+            self._noise_rates, cfg.min_variance, cfg.max_pos_sigma_m ** 2, self._newest_out)
+        if status == 0 and pending:
+            pending.set_newest(self._newest_out)
+        else:
+            pending.clear_newest()
+        return status
 
     def update_pose(self, capture_t_s: float, pos_w_m: ArrayLike, q_wb: ArrayLike
                     ) -> PoseVerdict:
@@ -424,6 +521,7 @@ class Ukf:
             return PoseVerdict.INVALID
         k = math.copysign(1.0, qw) / norm           # w >= 0, as quat_normalize
         q_m = np.array((qw * k, qx * k, qy * k, qz * k))
+        pos = np.array((px, py, pz))    # fresh: the compiled update's argument types
         if not self._initialized:
             self._rest.add_pose(pos, q_m)
             self._try_initialize()
@@ -483,6 +581,26 @@ class Ukf:
     def force_ext_w_n(self) -> Vec3Tuple:
         """The force observer's estimate of :meth:`estimate` (world, N), as plain floats."""
         return self._force_w
+
+    def usable(self) -> bool:
+        """Initialised and not diverged: what :meth:`health` reports without the flags
+        ``NOT_INITIALIZED`` and ``DIVERGED`` (the same tests, without building the report: the
+        per-tick question of a flight loop)."""
+        if not self._initialized:
+            return False
+        if self._nonfinite:
+            return False
+        cfg = self.cfg
+        P = self._P
+        return (max(P.item(0, 0), P.item(1, 1), P.item(2, 2)) <= cfg.diverged_pos_sigma_m ** 2
+                and max(P.item(6, 6), P.item(7, 7), P.item(8, 8))
+                <= math.radians(cfg.diverged_att_sigma_deg) ** 2)
+
+    @property
+    def filter_steps(self) -> int:
+        """UKF time updates (sigma-point passes) so far, replays after a late pose included:
+        one per IMU sample when nothing is replayed."""
+        return self._steps_py + self._hij.item(2)
 
     @property
     def fusion_delay_s(self) -> float:
@@ -592,6 +710,26 @@ class Ukf:
                   ) -> PoseVerdict:
         """Fuse at the filter's current time (the IMU sample nearest the capture time), the
         pose moved to that time (``shift``) or taken as it is (no latency compensation)."""
+        step = self._step_kernel
+        if step is not None and not self._nonfinite:     # the sequence below, compiled
+            cfg = self.cfg
+            pending = self._pending
+            self._x = x = np.ascontiguousarray(self._x)
+            self._P = P = np.ascontiguousarray(self._P)
+            self._q_ref = q = np.ascontiguousarray(self._q_ref)
+            out = self._pose_out
+            status, nis = step.fuse_now(
+                t_c, pos, q_m, shift, self._t_s, x, P, q, self._R, cfg.gate_nis, self._hist_x,
+                self._hist_P, self._hist_q, self._hist_gyro, self._hij, pending.buf,
+                pending.ij, pending.corr, cfg.min_variance, cfg.max_pos_sigma_m ** 2, out,
+                self._newest_out)
+            if status != 1:         # 1: P not positive definite, the path below repairs it
+                self._last_nis = nis
+                if status == 2:
+                    return self._rejected_pose(out[0:3].copy(), out[3:7].copy())
+                if pending:
+                    pending.set_newest(self._newest_out)
+                return self._accepted_pose(t_c)
         p_r, v_r, q_r = self._x[POS].tolist(), self._x[VEL].tolist(), self._q_ref.tolist()
         if shift:
             pos, q_m = self._shift_pose(pos, q_m, self._t_s - t_c, self._x, self._hist_head)
@@ -625,6 +763,7 @@ class Ukf:
                    ) -> tuple[FloatArray, FloatArray, FloatArray, bool]:
         """One predict -> (x, P, q_ref, finite); ``finite`` false: x or P has a non-finite
         entry (the caller keeps its last finite state)."""
+        self._steps_py += 1
         # 1 ns resolution, so that the repeated IMU period hits the cached Q and F
         dt = round(dt, 9)
         step = self._step_kernel

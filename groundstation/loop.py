@@ -38,7 +38,6 @@ from drivers.dynamixel.device import ServoHealth as DxlHealth
 from drivers.dynamixel.device import ServoState
 from drivers.errors import DeviceLostError, DriverError
 from drivers.mikrokopter.device import LinkHealth
-from estimator.types import HealthFlag
 from estimator.ukf import PoseVerdict, Ukf
 from groundstation.console import number
 from groundstation.flight import (
@@ -343,21 +342,19 @@ class FlightLoop:
             # 3. (predict part)
             self.ukf.predict(t_s, imu.gyro_rad_s, imu.accel_m_s2,
                              force_cmd_b if tick is not None else None)
-            est = self.ukf.estimate() if self.ukf.initialized else None
-            if est is not None:
-                p, v, q, w = (est.pos_w_m.tolist(), est.vel_w_m_s.tolist(), est.q_wb.tolist(),
-                              est.omega_b_rad_s.tolist())
-                est_state = VehicleState((p[0], p[1], p[2]), (v[0], v[1], v[2]),
-                                         (q[0], q[1], q[2], q[3]), (w[0], w[1], w[2]))
+            # plain floats and one check, not the full estimate (its covariance copy and
+            # health report cost as much as the predict)
             force_ext = None
-            if est is not None:
-                fe = est.force_ext_w_n
-                force_ext = (float(fe[0]), float(fe[1]), float(fe[2]))
-            estimator_ok = est is not None and not (
-                est.health.flags & (HealthFlag.DIVERGED | HealthFlag.NOT_INITIALIZED))
+            if self.ukf.initialized:
+                est_state = VehicleState(*self.ukf.output_state())
+                force_ext = self.ukf.force_ext_w_n()
+            estimator_ok = self.ukf.usable()
 
-            if n % LINK_CHECK_TICKS == 0:
+            # the periodic chores on different ticks (a tick carrying both would set the
+            # compute p99 at 1 kHz): operator exchange, link check
+            if n % LINK_CHECK_TICKS == LINK_CHECK_TICKS // 2:
                 self._exchange_with_operators(battery_v)
+            if n % LINK_CHECK_TICKS == 0:
                 stats = self.imu.link_stats()
                 # the newest mark at least a window old is the window's start
                 while len(rate_marks) > 1 and \

@@ -131,5 +131,6 @@ def test_that_no_tick_waits_on_a_compile() -> None:
     # from the cache there), and 400 ticks with poses neither compiled nor loaded another
     assert got["compiles"] == 0
     assert got["after"] == got["before"]
-    used = ("predict_step", "update_step", "predict", "update")
+    used = ("predict_step", "update_step", "predict", "update", "horizon_predict",
+            "fuse_now")
     assert all(got["before"][name] == 1 for name in used), got["before"]

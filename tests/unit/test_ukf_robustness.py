@@ -247,3 +247,25 @@ def test_that_arbitrary_inputs_never_raise_nor_leave_a_non_finite_estimate(
                 assert np.all(np.isfinite(state.q_wb))
                 assert np.all(np.isfinite(state.force_ext_w_n))
                 assert abs(float(np.linalg.norm(state.q_wb)) - 1.0) < 1e-9
+
+
+def test_that_usable_agrees_with_the_health_report_tick_by_tick() -> None:
+    """The loop's per-tick check (``usable``) is the health report's NOT_INITIALIZED and
+    DIVERGED, without the report: the same answer before initialisation, while dead
+    reckoning grows the position sigma past the divergence limit, and on a blown-up state."""
+    def reported(est: Ukf) -> bool:
+        return not est.health().flags & (HealthFlag.DIVERGED | HealthFlag.NOT_INITIALIZED)
+
+    sc = sy.make_scenario(sy.hover(), 2.0, sy.PAPER_IMU, sy.MocapModel(), seed=7)
+    fresh = Ukf(EstimatorConfig())
+    assert fresh.usable() is reported(fresh) is False
+    est = start_at_truth(sc, EstimatorConfig(diverged_pos_sigma_m=0.02))
+    seen = []
+    for k in range(len(sc.truth.t_s)):
+        est.predict(float(sc.truth.t_s[k]), sc.gyro_rad_s[k], sc.accel_m_s2[k])
+        assert est.usable() is reported(est)
+        seen.append(est.usable())
+    assert seen[0] and not seen[-1]        # dead reckoning: usable, then diverged
+    with np.errstate(all="ignore"):
+        est.predict(3.0, sc.gyro_rad_s[0], [1e200, 0.0, 0.0])
+    assert est.usable() is reported(est) is False
