@@ -137,9 +137,9 @@ class _TimedRingSink:
         self.misses = 0
         self.t0 = self.tick_start = time.perf_counter()
 
-    def append(self, row: tuple[Any, ...]) -> None:
+    def append_flat(self, values: tuple[Any, ...]) -> None:
         now = time.perf_counter()
-        self.ring.push(row)
+        self.ring.push_flat(values)
         done = time.perf_counter()
         if self.k < len(self.push_s):
             self.compute_s[self.k] = now - self.tick_start

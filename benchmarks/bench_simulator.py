@@ -184,9 +184,9 @@ class _TimedWriter(RecordWriter):
         super().__init__(None)
         self._ticks = ticks
 
-    def append(self, row: tuple[Any, ...]) -> None:
+    def append_flat(self, values: tuple[Any, ...]) -> None:
         t0 = _ns()
-        super().append(row)
+        super().append_flat(values)
         self._ticks.add("record", _ns() - t0)
 
 

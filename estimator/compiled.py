@@ -430,7 +430,7 @@ def _step(x: FloatArray, P: FloatArray, q_ref: FloatArray, dt: float, g: FloatAr
 
 
 @_jit
-def horizon_predict(t: float, dt: float, g_in: FloatArray, a_in: FloatArray, target_t: float,
+def horizon_predict(t: float, dt: float, inp: FloatArray, target_t: float,
                     direct: bool, t_filter: float, x: FloatArray, P: FloatArray,
                     q_ref: FloatArray, buf: FloatArray, ij: Any, corr: FloatArray,
                     gravity_m_s2: float, hist_t: FloatArray, hist_x: FloatArray,
@@ -440,7 +440,8 @@ def horizon_predict(t: float, dt: float, g_in: FloatArray, a_in: FloatArray, tar
                     min_variance: float, max_pos_variance: float, sig: FloatArray,
                     work: FloatArray, U: FloatArray, devT: FloatArray, q_tmp: FloatArray,
                     x_out: FloatArray, P_out: FloatArray, q_out: FloatArray,
-                    newest: FloatArray) -> tuple[int, float]:
+                    newest: FloatArray, fobs: FloatArray, fconst: FloatArray
+                    ) -> tuple[int, float]:
     """``Ukf.predict`` after its input checks, for a finite filter and a queue with room:
     ``direct`` (no horizon, empty queue) one filter step to t; else queue the input with its
     output state and feed the filter every queued input up to ``target_t``, then re-base the
@@ -450,7 +451,71 @@ def horizon_predict(t: float, dt: float, g_in: FloatArray, a_in: FloatArray, tar
     result): the step of the queue's oldest input (of t when ``direct``) was not taken and
     nothing of it is written; the outputs are re-based on the steps taken; the caller takes
     it from there (its repair and non-finite paths). ``newest`` = the output (p, v, q) at the
-    newest input, valid with status 0."""
+    newest input, valid with status 0.
+
+    ``inp``: the filter's gyro and accelerometer inputs (3 + 3), the raw accelerometer sample
+    (3), the commanded body force (3), whether one was given (1.0) and whether the force
+    observer runs (1.0); with status 0 the observer is updated (``observe_force``)."""
+    g_in, a_in = inp[0:3], inp[3:6]
+    st, t_filter = _horizon(t, dt, g_in, a_in, target_t, direct, t_filter, x, P, q_ref, buf, ij,
+                            corr, gravity_m_s2, hist_t, hist_x, hist_P, hist_q, hist_gyro,
+                            hist_accel, hij, rates, Q, gravity_w, Wm, Wc, scale, min_variance,
+                            max_pos_variance, sig, work, U, devT, q_tmp, x_out, P_out, q_out,
+                            newest)
+    if st == 0 and inp[13] != 0.0:
+        observe_force(dt, inp, x, P, newest, fobs, fconst)
+    return st, t_filter
+
+
+@_jit
+def observe_force(dt: float, inp: FloatArray, x: FloatArray, P: FloatArray,
+                  newest: FloatArray, fobs: FloatArray, fconst: FloatArray) -> None:
+    """``Ukf._observe_force``: ``fobs`` = estimate (3), variance, lagged command (3), lagged
+    command set; ``fconst`` = force walk variance rate, mass, command lag, accelerometer
+    variance rate; the attitude is the newest output's (``newest[6:10]``)."""
+    fobs[3] += fconst[0] * dt
+    if inp[12] == 0.0:
+        return
+    fx, fy, fz = inp[9], inp[10], inp[11]
+    if not math.isfinite(fx + fy + fz):
+        return
+    lag = fconst[2]
+    if lag > 0.0:
+        if fobs[7] == 0.0:
+            fobs[4], fobs[5], fobs[6], fobs[7] = fx, fy, fz, 1.0
+        else:   # exact discretisation of the first-order lag over dt
+            blend = 1.0 - math.exp(-dt / lag)
+            px, py, pz = fobs[4], fobs[5], fobs[6]
+            fobs[4], fobs[5], fobs[6] = (px + blend * (fx - px), py + blend * (fy - py),
+                                         pz + blend * (fz - pz))
+        fx, fy, fz = fobs[4], fobs[5], fobs[6]
+    m = fconst[1]
+    a, b, c = (m * (inp[6] - x[12]) - fx, m * (inp[7] - x[13]) - fy,
+               m * (inp[8] - x[14]) - fz)
+    w, qx, qy, qz = newest[6], newest[7], newest[8], newest[9]
+    tx, ty, tz = 2.0 * (qy * c - qz * b), 2.0 * (qz * a - qx * c), 2.0 * (qx * b - qy * a)
+    zx = a + w * tx + (qy * tz - qz * ty)
+    zy = b + w * ty + (qz * tx - qx * tz)
+    zz = c + w * tz + (qx * ty - qy * tx)
+    r = m * m * (fconst[3] / dt + (P[12, 12] + P[13, 13] + P[14, 14]) / 3.0)
+    var = fobs[3]
+    gain = var / (var + r)
+    wx, wy, wz = fobs[0], fobs[1], fobs[2]
+    fobs[0], fobs[1], fobs[2] = wx + gain * (zx - wx), wy + gain * (zy - wy), wz + gain * (zz - wz)
+    fobs[3] = var * (1.0 - gain)
+
+
+@_jit
+def _horizon(t: float, dt: float, g_in: FloatArray, a_in: FloatArray, target_t: float,
+             direct: bool, t_filter: float, x: FloatArray, P: FloatArray, q_ref: FloatArray,
+             buf: FloatArray, ij: Any, corr: FloatArray, gravity_m_s2: float,
+             hist_t: FloatArray, hist_x: FloatArray, hist_P: FloatArray, hist_q: FloatArray,
+             hist_gyro: FloatArray, hist_accel: FloatArray, hij: Any, rates: FloatArray,
+             Q: FloatArray, gravity_w: FloatArray, Wm: FloatArray, Wc: FloatArray,
+             scale: float, min_variance: float, max_pos_variance: float, sig: FloatArray,
+             work: FloatArray, U: FloatArray, devT: FloatArray, q_tmp: FloatArray,
+             x_out: FloatArray, P_out: FloatArray, q_out: FloatArray, newest: FloatArray
+             ) -> tuple[int, float]:
     if direct:
         st = _step(x, P, q_ref, dt, g_in, a_in, rates, Q, gravity_w, Wm, Wc, scale,
                    min_variance, max_pos_variance, sig, work, U, devT, q_tmp, x_out, P_out,

@@ -226,10 +226,13 @@ class CompiledKernel:
                           np.zeros(3, dtype=np.int64), buf, ij, corr, 1e-12, 1.0, np.zeros(7),
                           np.zeros(10))
         for direct in (True, False):
-            self.horizon_predict(0.002, 0.002, np.zeros(3), -self.gravity_w, 0.0, direct, 0.0,
-                                 x.copy(), P.copy(), q.copy(), buf, ij, corr,
-                                 float(-self.gravity_w[2]), *hist,
-                                 np.zeros(3, dtype=np.int64), rates, 1e-12, 1.0, np.zeros(10))
+            inp = np.zeros(14)
+            inp[3:6] = inp[6:9] = -self.gravity_w
+            inp[12] = inp[13] = 1.0
+            self.horizon_predict(0.002, 0.002, inp, 0.0, direct, 0.0, x.copy(), P.copy(),
+                                 q.copy(), buf, ij, corr, float(-self.gravity_w[2]), *hist,
+                                 np.zeros(3, dtype=np.int64), rates, 1e-12, 1.0, np.zeros(10),
+                                 np.zeros(8), np.array([1e-4, 1.0, 0.03, 1e-4]))
 
     def fuse_now(self, t_c: float, pos: FloatArray, q_m: FloatArray, shift: bool,
                  t_filter: float, x: FloatArray, P: FloatArray, q_ref: FloatArray,
@@ -246,22 +249,23 @@ class CompiledKernel:
             self._P_out, self._q_out, self._y, self._S, self._z, pose_out, newest)
         return int(status), float(nis)
 
-    def horizon_predict(self, t: float, dt: float, g_in: FloatArray, a_in: FloatArray,
-                        target_t: float, direct: bool, t_filter: float, x: FloatArray,
+    def horizon_predict(self, t: float, dt: float, inp: FloatArray, target_t: float,
+                        direct: bool, t_filter: float, x: FloatArray,
                         P: FloatArray, q_ref: FloatArray, buf: FloatArray, ij: npt.NDArray[Any],
                         corr: FloatArray, gravity_m_s2: float, hist_t: FloatArray,
                         hist_x: FloatArray, hist_P: FloatArray, hist_q: FloatArray,
                         hist_gyro: FloatArray, hist_accel: FloatArray, hij: npt.NDArray[Any],
                         rates: FloatArray, min_variance: float, max_pos_variance: float,
-                        newest: FloatArray) -> tuple[int, float]:
+                        newest: FloatArray, fobs: FloatArray, fconst: FloatArray
+                        ) -> tuple[int, float]:
         """``Ukf.predict``'s filter step or queue-and-advance in one call (see
         :func:`compiled.horizon_predict`) -> (status, filter time)."""
         status, t_f = compiled.horizon_predict(
-            t, dt, g_in, a_in, target_t, direct, t_filter, x, P, q_ref, buf, ij, corr,
+            t, dt, inp, target_t, direct, t_filter, x, P, q_ref, buf, ij, corr,
             gravity_m_s2, hist_t, hist_x, hist_P, hist_q, hist_gyro, hist_accel, hij, rates,
             self._Q, self.gravity_w, self.Wm, self.Wc, self.scale, min_variance,
             max_pos_variance, self._sig, self._work, self._U, self._dev, self._q_tmp,
-            self._x_out, self._P_out, self._q_out, newest)
+            self._x_out, self._P_out, self._q_out, newest, fobs, fconst)
         return int(status), float(t_f)
 
     def predict_step(self, x: FloatArray, P: FloatArray, q_ref: FloatArray, Q: FloatArray,

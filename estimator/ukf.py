@@ -322,9 +322,13 @@ class Ukf:
         self._hij = np.zeros(3, dtype=np.int64)
         self._steps_py = 0      # filter steps (UKF time updates) taken by _propagate
         # force observer (isotropic variance: the accelerometer noise is isotropic)
-        self._force_w: Vec3Tuple = (0.0, 0.0, 0.0)
-        self._force_var = cfg.init_force_sigma_n ** 2
-        self._force_produced_b: Vec3Tuple | None = None   # lagged command
+        # estimate (3), variance, lagged command (3), lagged command set (0/1): an array the
+        # compiled predict updates (read through the properties below)
+        self._fobs = np.zeros(8)
+        self._fobs[3] = cfg.init_force_sigma_n ** 2
+        self._fobs_const = np.array([cfg.force_walk_n_sqrt_s ** 2, cfg.mass_kg,
+                                     cfg.force_cmd_lag_s,
+                                     TWO_SIDED * cfg.accel_noise_m_s2_sqrt_hz ** 2])
         # fusion horizon and output predictor: IMU inputs newer than the filter's time wait
         # here, each with the output state (mean only) propagated to its time
         self._pending = _OutputPredictor(cfg.gravity_m_s2,
@@ -356,6 +360,36 @@ class Ukf:
         self._imu_invalid = 0
         self._poses_invalid = 0
         self._last_nis = math.nan
+
+    # the force observer's state lives in an array the compiled predict updates
+    @property
+    def _force_w(self) -> Vec3Tuple:
+        f = self._fobs.tolist()
+        return (f[0], f[1], f[2])
+
+    @_force_w.setter
+    def _force_w(self, f: Vec3Tuple) -> None:
+        self._fobs[0:3] = f
+
+    @property
+    def _force_var(self) -> float:
+        return self._fobs.item(3)
+
+    @_force_var.setter
+    def _force_var(self, v: float) -> None:
+        self._fobs[3] = v
+
+    @property
+    def _force_produced_b(self) -> Vec3Tuple | None:
+        f = self._fobs.tolist()
+        return (f[4], f[5], f[6]) if f[7] else None
+
+    @_force_produced_b.setter
+    def _force_produced_b(self, f: Vec3Tuple | None) -> None:
+        if f is None:
+            self._fobs[7] = 0.0
+        else:
+            self._fobs[4:8] = (f[0], f[1], f[2], 1.0)
 
     # the history ring's head and length live in an array the compiled predict updates
     @property
@@ -454,37 +488,43 @@ class Ukf:
         if not dt > 0.0:
             self._imu_out_of_order += 1
             return
-        # fresh contiguous arrays (the compiled predict's argument types never change)
         if self._prev_gyro is not None and self.cfg.imu_integration == "trapezoid":
             (pgx, pgy, pgz), (pax, pay, paz) = self._prev_f   # floats: cheaper than numpy
-            g_in = np.array((0.5 * (pgx + gx), 0.5 * (pgy + gy), 0.5 * (pgz + gz)))
-            a_in = np.array((0.5 * (pax + ax), 0.5 * (pay + ay), 0.5 * (paz + az)))
+            gi = (0.5 * (pgx + gx), 0.5 * (pgy + gy), 0.5 * (pgz + gz))
+            ai = (0.5 * (pax + ax), 0.5 * (pay + ay), 0.5 * (paz + az))
         else:
-            g_in, a_in = np.array((gx, gy, gz)), np.array((ax, ay, az))
+            gi, ai = (gx, gy, gz), (ax, ay, az)
         self._prev_gyro, self._prev_accel, self._last_gyro = gyro, accel, gyro
         self._prev_f = ((gx, gy, gz), (ax, ay, az))
         self._now_s = t
         pending = self._pending
         direct = self._delay_s == 0.0 and not pending      # the filter is the output
         if self._step_kernel is not None and not self._nonfinite and not pending.full():
-            if self._compiled_predict(t, dt, g_in, a_in, direct) != 0:
-                # a repair or a non-finite step: the Python path from where it stopped
-                if direct:
-                    self._filter_step(t, dt, g_in, a_in)
-                else:
-                    self._advance_filter(t - self._delay_s)
+            # one fresh array of every input (the compiled signature never changes)
+            fx, fy, fz = (0.0, 0.0, 0.0) if force_cmd_b_n is None else \
+                np.asarray(force_cmd_b_n, dtype=np.float64).tolist()
+            inp = np.array((*gi, *ai, ax, ay, az, fx, fy, fz,
+                            force_cmd_b_n is not None, self.cfg.force_observer), np.float64)
+            if self._compiled_predict(t, dt, inp, direct) == 0:
+                return          # the force observer ran in the same call
+            # a repair or a non-finite step: the Python path from where it stopped
+            if direct:
+                self._filter_step(t, dt, inp[0:3].copy(), inp[3:6].copy())
+            else:
+                self._advance_filter(t - self._delay_s)
         elif direct:
+            g_in, a_in = np.array(gi), np.array(ai)
             self._filter_step(t, dt, g_in, a_in)
         else:
-            self._queue_input(t, dt, g_in, a_in)
+            self._queue_input(t, dt, np.array(gi), np.array(ai))
             self._advance_filter(t - self._delay_s)
         if self.cfg.force_observer:
             self._observe_force(dt, accel, force_cmd_b_n)
 
-    def _compiled_predict(self, t: float, dt: float, g_in: FloatArray, a_in: FloatArray,
-                          direct: bool) -> int:
+    def _compiled_predict(self, t: float, dt: float, inp: FloatArray, direct: bool) -> int:
         """The same sequence as the Python path (a direct filter step, or queue the input and
-        advance the filter to the horizon), in one compiled call; its status (0: done)."""
+        advance the filter to the horizon; then the force observer), in one compiled call;
+        its status (0: done)."""
         step = self._step_kernel
         assert step is not None
         cfg = self.cfg
@@ -494,10 +534,11 @@ class Ukf:
         self._P = P = np.ascontiguousarray(self._P)
         self._q_ref = q = np.ascontiguousarray(self._q_ref)
         status, self._t_s = step.horizon_predict(
-            t, dt, g_in, a_in, t - self._delay_s, direct, self._t_s, x, P, q, pending.buf,
+            t, dt, inp, t - self._delay_s, direct, self._t_s, x, P, q, pending.buf,
             pending.ij, pending.corr, cfg.gravity_m_s2, self._hist_t, self._hist_x,
             self._hist_P, self._hist_q, self._hist_gyro, self._hist_accel, self._hij,
-            self._noise_rates, cfg.min_variance, cfg.max_pos_sigma_m ** 2, self._newest_out)
+            self._noise_rates, cfg.min_variance, cfg.max_pos_sigma_m ** 2, self._newest_out,
+            self._fobs, self._fobs_const)
         if status == 0 and pending:
             pending.set_newest(self._newest_out)
         else:

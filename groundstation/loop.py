@@ -9,7 +9,8 @@ One tick (``architecture.md``, "One tick"):
 4. flight state machine (health of every input -> continue, land, cut);
 5. mission reference, tilt planner and controller (:class:`controller.pipeline.FlightComputer`)
    -> six spin rates, written as one ``w`` frame; the tilt command goes to the servo mailbox;
-6. one flight-record row into the telemetry ring (never blocks), the tick's timing recorded.
+6. one flight-record row (flat values, :func:`groundstation.record.flat_row`) into the telemetry
+   ring (never blocks), the tick's timing recorded.
 
 Time: in ``lockstep`` the tick time is the IMU sample counter times the IMU period (the
 emulated board's simulated clock, so two runs are identical and row k of the record is IMU
@@ -678,21 +679,22 @@ class FlightLoop:
                   est: VehicleState, spins: tuple[float, ...], eta_f: float,
                   state: FlightState) -> None:
         nan = math.nan
-        row: tuple[Any, ...]
+        row: tuple[Any, ...]  # flat (record.flat_row): the ring packs it without numpy
         if tick is not None:
             ref, cmd = tick.ref, tick.cmd
             row = (t_s, ref.segment, ref.measured and state is FlightState.MISSION,
-                   _mask(cmd.saturated), 0, ref.pos_w_m, ref.vel_w_m_s, ref.acc_w_m_s2,
-                   ref.q_wr, tick.alpha_ref_rad, tick.alpha_cmd_rad, alpha,
-                   rot_to_quat(cmd.r_wd), est.pos_w_m, est.vel_w_m_s, est.q_wb,
-                   est.omega_b_rad_s, est.pos_w_m, est.q_wb, spins, spins, cmd.thrusts_n,
-                   cmd.f_r_w_n, cmd.u_f_b_n, cmd.u_tau_b_n_m, cmd.r_xy_n, cmd.theta_rad, eta_f)
+                   _mask(cmd.saturated), 0, *ref.pos_w_m, *ref.vel_w_m_s, *ref.acc_w_m_s2,
+                   *ref.q_wr, tick.alpha_ref_rad, tick.alpha_cmd_rad, alpha,
+                   *rot_to_quat(cmd.r_wd), *est.pos_w_m, *est.vel_w_m_s, *est.q_wb,
+                   *est.omega_b_rad_s, *est.pos_w_m, *est.q_wb, *spins, *spins, *cmd.thrusts_n,
+                   *cmd.f_r_w_n, *cmd.u_f_b_n, *cmd.u_tau_b_n_m, cmd.r_xy_n, cmd.theta_rad,
+                   eta_f)
         else:
             zero3 = (0.0, 0.0, 0.0)
-            row = (t_s, -1, False, 0, 1, est.pos_w_m, zero3, zero3, (1.0, 0.0, 0.0, 0.0),
-                   nan, nan, alpha, (1.0, 0.0, 0.0, 0.0), est.pos_w_m, est.vel_w_m_s,
-                   est.q_wb, est.omega_b_rad_s, est.pos_w_m, est.q_wb, spins, spins,
-                   tuple(self._c_f * s * s for s in spins), zero3, zero3, zero3, 0.0, 0.0, 1.0)
+            row = (t_s, -1, False, 0, 1, *est.pos_w_m, *zero3, *zero3, 1.0, 0.0, 0.0, 0.0,
+                   nan, nan, alpha, 1.0, 0.0, 0.0, 0.0, *est.pos_w_m, *est.vel_w_m_s,
+                   *est.q_wb, *est.omega_b_rad_s, *est.pos_w_m, *est.q_wb, *spins, *spins,
+                   *(self._c_f * s * s for s in spins), *zero3, *zero3, *zero3, 0.0, 0.0, 1.0)
         if not self.row_sink(row):
             self._counters["telemetry_dropped"] += 1
 

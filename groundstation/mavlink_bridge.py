@@ -221,6 +221,7 @@ class MavlinkBridge:
         self._periods = {name: (1.0 / hz if hz > 0 else None)
                          for name, hz in config.rates_hz().items()}
         self._next_due: dict[str, float] = {}
+        self._heartbeat_now = False     # a phase change: the next pass sends a HEARTBEAT
         self._chunk_id = 0
         self._gcs_heartbeat_t: float | None = None
         self._out: Counter[str] = Counter()
@@ -260,11 +261,16 @@ class MavlinkBridge:
                   "geofence": h.geofence_ok}
         with self._lock:
             new: list[StatusEvent] = []
-            if self._phase_events and self._prev_phase is not None and \
-                    tel.phase is not self._prev_phase:
-                sev = Severity.EMERGENCY if tel.phase is FlightPhase.CUT else Severity.NOTICE
-                new.append(StatusEvent(tel.t_s, f"{self._prev_phase.name} -> {tel.phase.name}",
-                                       sev))
+            if self._prev_phase is not None and tel.phase is not self._prev_phase:
+                # the new phase goes out in a HEARTBEAT at the next service pass, not up to a
+                # heartbeat period later: a phase that lasts less than that (a short lockstep
+                # mission, a brief LANDING) is still seen by the GCS
+                self._heartbeat_now = True
+                if self._phase_events:
+                    sev = Severity.EMERGENCY if tel.phase is FlightPhase.CUT \
+                        else Severity.NOTICE
+                    new.append(StatusEvent(
+                        tel.t_s, f"{self._prev_phase.name} -> {tel.phase.name}", sev))
             if self._prev_health is not None:
                 for name, ok in health.items():
                     if ok != self._prev_health[name]:
@@ -364,7 +370,7 @@ class MavlinkBridge:
 
     def next_due_s(self, now_s: float) -> float:
         """Seconds until the next telemetry message is due (for the service thread's wait)."""
-        if not self._next_due:
+        if not self._next_due or self._heartbeat_now:
             return 0.0
         return max(0.0, min(self._next_due.values()) - now_s)
 
@@ -447,6 +453,9 @@ class MavlinkBridge:
             tel = self._latest
             events = list(self._events)
             self._events.clear()
+            if self._heartbeat_now and "HEARTBEAT" in self._next_due:
+                self._next_due["HEARTBEAT"] = now     # due now, then its cadence again
+            self._heartbeat_now = False
         for ev in events:
             self._chunk_id = self._chunk_id % 65535 + 1
             for m in messages.statustext(ev, self._chunk_id):

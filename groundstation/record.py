@@ -80,6 +80,65 @@ _FIELD_ZERO.update({name: (1.0, 0.0, 0.0, 0.0) for name in ("q_wr", "q_wd", "q_w
 _FIELD_ZERO["eta_f"] = 1.0
 
 
+def row_struct(dtype: np.dtype[Any]) -> struct.Struct:
+    """The packed little-endian layout of one row of ``dtype`` (scalars and 1-D sub-arrays of
+    f8, f4, i2, u1, no padding): packing a flat row with it gives numpy's bytes."""
+    codes = {"<f8": "d", "<f4": "f", "<i2": "h", "|u1": "B"}
+    fmt = "<"
+    for name in dtype.names or ():
+        sub = dtype.fields[name][0]  # type: ignore[index]
+        base = sub.base if sub.shape else sub
+        fmt += codes[base.str] * (sub.shape[0] if sub.shape else 1)
+    layout = struct.Struct(fmt)
+    if layout.size != dtype.itemsize:
+        raise ValueError(f"row dtype has padding ({dtype.itemsize} bytes, packed {layout.size})")
+    return layout
+
+
+#: one record row packed from its flat values (3-vectors spelled out, in field order)
+ROW_STRUCT = row_struct(RECORD_DTYPE)
+#: values per field in a flat row (1 for scalars)
+_FIELD_WIDTHS: tuple[int, ...] = tuple(
+    RECORD_DTYPE[name].shape[0] if RECORD_DTYPE[name].shape else 1 for name in _FIELD_NAMES)
+FLAT_ROW_LEN = sum(_FIELD_WIDTHS)
+
+
+def flat_row(row: tuple[Any, ...]) -> tuple[Any, ...]:
+    """A nested row (sub-arrays as tuples) spelled out as the flat values of :data:`ROW_STRUCT`."""
+    out: list[Any] = []
+    for value, width in zip(row, _FIELD_WIDTHS, strict=True):
+        if width == 1:
+            out.append(value)
+        else:
+            out.extend(value)
+    return tuple(out)
+
+
+def nested_row(flat: tuple[Any, ...], dtype: np.dtype[Any] = RECORD_DTYPE) -> tuple[Any, ...]:
+    """The inverse of :func:`flat_row`: sub-arrays regrouped as tuples, in field order."""
+    out: list[Any] = []
+    i = 0
+    for name in dtype.names or ():
+        shape = dtype[name].shape
+        width = shape[0] if shape else 1
+        out.append(flat[i] if not shape else tuple(flat[i:i + width]))
+        i += width
+    return tuple(out)
+
+
+def pack_row_into(layout: struct.Struct, dtype: np.dtype[Any], buf: Any, offset: int,
+                  values: tuple[Any, ...]) -> None:
+    """Pack one flat row at ``offset`` of ``buf``; what the packer refuses (a float beyond
+    float32's range, a float in an integer field) is converted by numpy as it would store it
+    (a huge float becomes inf) or refused with numpy's error."""
+    try:
+        layout.pack_into(buf, offset, *values)
+    except (struct.error, OverflowError, TypeError):
+        with np.errstate(over="ignore", invalid="ignore"):
+            data = np.array([nested_row(values, dtype)], dtype=dtype).tobytes()
+        buf[offset:offset + len(data)] = data
+
+
 def row_from_fields(**fields: Any) -> tuple[Any, ...]:
     """A row tuple from keyword fields (the others zero, quaternions identity).
 
@@ -120,7 +179,10 @@ class RecordWriter:
         self.metadata = dict(metadata or {})
         self.flush_rows = max(1, flush_rows)
         self.keep_in_memory = keep_in_memory
-        self._pending: list[tuple[Any, ...]] = []
+        # rows packed as they come (ROW_STRUCT), written or kept every flush_rows rows
+        self._row_bytes = RECORD_DTYPE.itemsize
+        self._buf = bytearray(self.flush_rows * self._row_bytes)
+        self._n = 0
         self._kept: list[Rows] = []
         self._fd: int | None = None
         self.rows_written = 0
@@ -133,8 +195,26 @@ class RecordWriter:
             os.write(self._fd, MAGIC + struct.pack("<I", len(header)) + header)
 
     def append(self, row: tuple[Any, ...]) -> None:
-        self._pending.append(row)
-        if len(self._pending) >= self.flush_rows:
+        """One row in :data:`RECORD_DTYPE` field order, sub-arrays as tuples."""
+        try:
+            values = flat_row(row)
+        except (TypeError, ValueError):
+            # not the tuples flat_row expects (a scalar numpy broadcasts): numpy converts it,
+            # or refuses it with its own error
+            start = self._n * self._row_bytes
+            self._buf[start:start + self._row_bytes] = np.array(
+                [row], dtype=RECORD_DTYPE).tobytes()
+            self._n += 1
+            if self._n >= self.flush_rows:
+                self.flush()
+            return
+        self.append_flat(values)
+
+    def append_flat(self, values: tuple[Any, ...]) -> None:
+        """One row as the flat values of :data:`ROW_STRUCT` (the simulator's hot loop)."""
+        pack_row_into(ROW_STRUCT, RECORD_DTYPE, self._buf, self._n * self._row_bytes, values)
+        self._n += 1
+        if self._n >= self.flush_rows:
             self.flush()
 
     def append_block(self, rows: Rows) -> None:
@@ -143,10 +223,10 @@ class RecordWriter:
         self._write_block(np.asarray(rows, dtype=RECORD_DTYPE))
 
     def flush(self) -> None:
-        if not self._pending:
+        if not self._n:
             return
-        block = np.array(self._pending, dtype=RECORD_DTYPE)
-        self._pending = []
+        block = np.frombuffer(bytes(self._buf[:self._n * self._row_bytes]), dtype=RECORD_DTYPE)
+        self._n = 0
         self._write_block(block)
 
     def _write_block(self, block: Rows) -> None:

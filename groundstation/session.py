@@ -447,7 +447,7 @@ class FlightSession:
                 tel.start()
             if forwarder is not None:
                 forwarder.start()
-            row_sink = ring.push
+            row_sink = ring.push_flat
             event_sink = note
 
             loop = FlightLoop(

@@ -121,14 +121,16 @@ class StateSource(Protocol):
 
 
 class RowSink(Protocol):
-    """Receives one flight-record row (a tuple in ``RECORD_DTYPE`` order) per tick."""
+    """Receives one flight-record row per tick as its flat values: the ``RECORD_DTYPE``
+    fields in order, sub-arrays spelled out (``groundstation.record.flat_row``; the record
+    writer packs them without numpy)."""
 
-    def append(self, row: tuple[Any, ...]) -> None:
+    def append_flat(self, values: tuple[Any, ...]) -> None:
         ...
 
 
 class _NullSink:
-    def append(self, row: tuple[Any, ...]) -> None:
+    def append_flat(self, values: tuple[Any, ...]) -> None:
         pass
 
 
@@ -286,6 +288,7 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
     if scenario is not None:
         meta["scenario"] = scenario.name
     writer: RowSink = sink if sink is not None else _NullSink()
+    append_flat = writer.append_flat
     end_s = duration_s if duration_s is not None else mission.duration_s + 0.5
     dt = 1.0 / CONTROL_RATE_HZ
     n_ticks = round(end_s * CONTROL_RATE_HZ)
@@ -337,13 +340,13 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
         for i, flag in enumerate(cmd.saturated):
             if flag:
                 mask |= 1 << i
-        writer.append((
+        append_flat((
             t, ref.segment, ref.measured, mask, sim.landed,
-            ref.pos_w_m, ref.vel_w_m_s, ref.acc_w_m_s2, ref.q_wr,
+            *ref.pos_w_m, *ref.vel_w_m_s, *ref.acc_w_m_s2, *ref.q_wr,
             tick.alpha_ref_rad, tick.alpha_cmd_rad, alpha,
-            rot_to_quat(cmd.r_wd), s.pos_w_m, s.vel_w_m_s, s.q_wb, s.omega_b_rad_s,
-            est.pos_w_m, est.q_wb, spins, sim.rotor_speeds_hz(), thrusts,
-            cmd.f_r_w_n, cmd.u_f_b_n, cmd.u_tau_b_n_m, cmd.r_xy_n, cmd.theta_rad, eta,
+            *rot_to_quat(cmd.r_wd), *s.pos_w_m, *s.vel_w_m_s, *s.q_wb, *s.omega_b_rad_s,
+            *est.pos_w_m, *est.q_wb, *spins, *sim.rotor_speeds_hz(), *thrusts,
+            *cmd.f_r_w_n, *cmd.u_f_b_n, *cmd.u_tau_b_n_m, cmd.r_xy_n, cmd.theta_rad, eta,
         ))
         sim.advance(dt)
         ticks += 1

@@ -260,9 +260,37 @@ def test_that_arm_takeoff_land_disarm_and_emergency_stop_are_acked_by_state(rig:
     assert rig.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196) == R.ACCEPTED  # force: stop
     assert rig.sink.accepted == [Arm(), Takeoff(1.0), SetTilt(math.radians(20.0)), Land(),
                                  Disarm(), EmergencyStop("force disarm")]
-    assert rig.recv("HEARTBEAT").system_status == M.MAV_STATE_EMERGENCY
+    # (the phase changes before it each sent a heartbeat of their own at once)
+    assert any(rig.recv("HEARTBEAT").system_status == M.MAV_STATE_EMERGENCY for _ in range(4))
     assert rig.command(M.MAV_CMD_DO_FLIGHTTERMINATION, 1) == R.ACCEPTED
     assert rig.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == R.DENIED  # no re-arm after a cut
+
+
+def test_that_a_phase_change_goes_out_in_a_heartbeat_at_once_then_the_cadence_resumes(
+        rig: Rig) -> None:
+    # Fixture: the 1 Hz heartbeat; the rig's first one went out at t = 0
+    got: list[tuple[float, int]] = []
+
+    def serve_until(t_end: float, phase: FlightPhase) -> None:
+        while rig.t < t_end - 1e-9:
+            rig.t = round(rig.t + 0.01, 6)
+            rig.bridge.publish(hover(rig.t, phase))
+            rig.bridge.step(rig.t)
+            time.sleep(0.001)
+            while rig._pull(0.0):
+                pass
+            for hb in rig.inbox.pop("HEARTBEAT", []):
+                got.append((rig.t, hb.custom_mode))
+
+    # Test: a phase that lasts 0.3 s, between two periodic heartbeats
+    serve_until(0.5, FlightPhase.PREFLIGHT)
+    serve_until(0.8, FlightPhase.ARMED)
+    serve_until(2.5, FlightPhase.PREFLIGHT)
+    # Assert: each change sent one at once (at 0.51 s and 0.81 s, before 1.0 s); the cadence
+    # is kept from there (1.81 s), not bunched
+    arrivals = [(round(t, 2), mode) for t, mode in got]
+    assert (0.51, FlightPhase.ARMED) in arrivals and (0.81, FlightPhase.PREFLIGHT) in arrivals
+    assert [t for t, _ in arrivals] == [0.51, 0.81, 1.81], arrivals
 
 
 def test_that_signed_commands_are_accepted_and_unsigned_wrong_key_and_replays_rejected() -> None:

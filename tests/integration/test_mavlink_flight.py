@@ -29,7 +29,7 @@ from groundstation.operator import (
     SensorHealth,
     VehicleTelemetry,
 )
-from groundstation.record import RECORD_DTYPE
+from groundstation.record import RECORD_DTYPE, nested_row
 from sim_backend.closed_loop import fly_mission
 
 mavutil.set_dialect("common")
@@ -53,8 +53,8 @@ class BridgeSink:
         self.rows: dict[int, dict[str, Any]] = {}
         self.received: list[Any] = []
 
-    def append(self, row: tuple[Any, ...]) -> None:
-        r = dict(zip(FIELDS, row, strict=True))
+    def append_flat(self, values: tuple[Any, ...]) -> None:
+        r = dict(zip(FIELDS, nested_row(values), strict=True))
         t = float(r["t_s"])
         self.rows[round(t * 1000)] = r
         self.bridge.publish(VehicleTelemetry(

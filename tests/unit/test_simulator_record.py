@@ -160,3 +160,26 @@ def test_that_rows_can_be_built_from_named_fields() -> None:
     assert tuple(row["q_wb"]) == (1.0, 0.0, 0.0, 0.0)
     with pytest.raises(TypeError, match="pos_m"):
         row_from_fields(pos_m=(0, 0, 0))
+
+
+def test_that_packed_rows_are_the_bytes_numpy_writes(tmp_path: Path) -> None:
+    # the writer packs rows itself (nested or flat); a row the packer refuses (a float
+    # segment, a numpy scalar flag) goes through numpy: the file holds numpy's bytes
+    from groundstation.record import flat_row
+
+    rows = [_row(0.002 * k, segment=k - 1, sat_mask=k, landed=k % 2, alpha_ref_rad=math.nan,
+                 pos_w_m=(0.1 * k, -1.0, 1e-9), spin_hz=(1e6, -2.0, 0.5, 0.0, 70.0, 71.0))
+            for k in range(7)]
+    rows.append(_row(0.016, segment=2.0, measured=np.bool_(True)))
+    rows.append(_row(0.018, pos_w_m=(1e39, -1e300, 0.0)))      # beyond float32: inf
+    path = tmp_path / "r.fhr"
+    with RecordWriter(path, flush_rows=3) as w:
+        for k, row in enumerate(rows):
+            if k % 2:
+                w.append(row)
+            else:
+                w.append_flat(flat_row(row))
+    got = read_record(path).rows
+    with np.errstate(over="ignore"):
+        assert got.tobytes() == np.array(rows, dtype=RECORD_DTYPE).tobytes()
+    assert np.isposinf(got["pos_w_m"][-1][0]) and np.isneginf(got["pos_w_m"][-1][1])

@@ -71,3 +71,32 @@ def test_that_flight_record_rows_pass_through_intact() -> None:
         np.testing.assert_allclose(got["spin_cmd_hz"][0], (16, 20, 30, 40, 50, 102))
     finally:
         ring.close()
+
+
+def test_that_a_flat_row_is_packed_into_the_ring_as_numpy_would_store_it() -> None:
+    # the loop's path (push_flat, no numpy in the tick) against numpy's conversion (push)
+    from groundstation.record import RECORD_DTYPE, flat_row, row_from_fields
+
+    rows = [row_from_fields(t_s=2.5 + k, segment=-1 + k, measured=bool(k), sat_mask=5 * k,
+                            landed=k % 2, alpha_ref_rad=float("nan"),
+                            pos_w_m=(0.1 * k, -2.0, 1e-9), q_wb=(0.5, 0.5, -0.5, 0.5),
+                            spin_cmd_hz=(16.0, 20.5, 30.25, 40.0, 1e6, -3.0))
+            for k in range(3)]
+    flat, ref = TelemetryRing(RECORD_DTYPE, capacity=8), TelemetryRing(RECORD_DTYPE, capacity=8)
+    try:
+        for row in rows:
+            assert flat.push_flat(flat_row(row))
+            assert ref.push(row)
+        huge = row_from_fields(t_s=9.0, pos_w_m=(1e39, -1e300, 0.0))   # beyond float32
+        assert flat.push_flat(flat_row(huge))
+        with np.errstate(over="ignore"):
+            assert ref.push(huge)
+        got = flat.drain()
+        assert got.tobytes() == ref.drain().tobytes()
+        assert np.isposinf(got["pos_w_m"][-1][0]) and np.isneginf(got["pos_w_m"][-1][1])
+        for _ in range(8):                  # full: refused and counted as push does
+            flat.push_flat(flat_row(rows[0]))
+        assert not flat.push_flat(flat_row(rows[0])) and flat.dropped == 1
+    finally:
+        flat.close()
+        ref.close()
