@@ -76,6 +76,8 @@ class HealthSnapshot:
     takeoff_reached: bool = True
     #: MoCap and the IMU agree (the estimator is not re-seeding from MoCap again and again)
     mocap_consistent: bool = True
+    #: what the servo driver says is wrong, named in a servo fault ("no reply", "stale", ...)
+    servo_detail: str = ""
 
 
 @dataclass(frozen=True)
@@ -259,6 +261,7 @@ class FlightStateMachine:
         if self.state is FlightState.ARMED:
             return  # on the ground, idle: nothing else can go wrong that landing would fix
         reason = None
+        detail = ""     # the driver's word, in the fault only (the transition keeps the reason)
         if not h.mocap_consistent and self.state is FlightState.TAKEOFF:
             # near the ground with a position that cannot be trusted: do not climb on it
             what = "MoCap and IMU disagree (the estimator re-seeds from MoCap again and again)"
@@ -279,8 +282,9 @@ class FlightStateMachine:
         elif h.battery_v < lim.min_battery_v:
             reason = f"battery low ({h.battery_v:.2f} V < {lim.min_battery_v:g} V)"
         elif h.servo is ServoHealth.FAULT and not self._hold_tilt:
+            detail = f" ({h.servo_detail})" if h.servo_detail else ""
             if lim.servo_fault_action == "hold":
-                self._fault(t_s, "tilt servo fault: holding the measured tilt")
+                self._fault(t_s, f"tilt servo fault: holding the measured tilt{detail}")
                 self._hold_tilt = True
             else:
                 reason = "tilt servo fault"
@@ -288,7 +292,7 @@ class FlightStateMachine:
             return
         if self.state is FlightState.LANDING and self._land_here:
             return  # already doing the safe thing
-        self._fault(t_s, reason)
+        self._fault(t_s, reason + detail)
         if lim.failsafe_action == "cut":
             self._cut(t_s, f"failsafe (cut): {reason}")
         else:

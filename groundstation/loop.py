@@ -417,7 +417,9 @@ class FlightLoop:
             h = self._health(0.0, link_ok, t_s - last_pose_t_s, estimator_ok, servo_health,
                              battery_v, est_state, on_ground, phase, spinning,
                              lifted_off=lifted_off, takeoff_reached=at_height,
-                             mocap_consistent=self._mocap_consistent(t_s))
+                             mocap_consistent=self._mocap_consistent(t_s),
+                             servo_detail=_servo_detail(servo_state)
+                             if servo_health is ServoHealth.FAULT else "")
             if sm.state in FLYING:
                 extremes.add(h, gap_s, self.imu_rate_fraction)
             n_transitions = len(sm.transitions)
@@ -653,7 +655,7 @@ class FlightLoop:
                 servo: ServoHealth, battery_v: float, est: VehicleState, on_ground: bool,
                 phase: Literal["takeoff", "mission", "land", "done"], spinning: bool,
                 lifted_off: bool = True, takeoff_reached: bool = True,
-                mocap_consistent: bool = True) -> HealthSnapshot:
+                mocap_consistent: bool = True, servo_detail: str = "") -> HealthSnapshot:
         q = est.q_wb
         r33 = 1.0 - 2.0 * (q[1] * q[1] + q[2] * q[2])
         return HealthSnapshot(
@@ -662,7 +664,7 @@ class FlightLoop:
             body_tilt_deg=math.degrees(math.acos(max(-1.0, min(1.0, r33)))),
             on_ground=on_ground, mission_phase=phase, motors_spinning=spinning,
             lifted_off=lifted_off, takeoff_reached=takeoff_reached,
-            mocap_consistent=mocap_consistent,
+            mocap_consistent=mocap_consistent, servo_detail=servo_detail,
         )
 
     def _mocap_consistent(self, t_s: float) -> bool:
@@ -748,6 +750,17 @@ def _mask(flags: tuple[bool, ...]) -> int:
         if f:
             m |= 1 << i
     return m
+
+
+def _servo_detail(state: Any) -> str:
+    """The driver's health of a faulted servo in words ("no reply", "stale", "servo error,
+    error bits OVERLOAD"), for the fault line the operator reads."""
+    if state is None:
+        return "no measurement"
+    text = state.health.name.lower().replace("_", " ")
+    if state.errors:
+        text += f", error bits {state.errors.name or int(state.errors)}"
+    return text
 
 
 def _servo_health(state: Any) -> ServoHealth:

@@ -105,6 +105,18 @@ def test_that_a_servo_fault_holds_the_tilt_or_lands_as_configured() -> None:
     assert sm.update(10.0, replace(OK, servo=ServoHealth.FAULT)).state is FlightState.LANDING
 
 
+def test_that_a_servo_fault_names_what_the_driver_said_in_the_fault_not_the_transition(
+        ) -> None:
+    fault = replace(OK, servo=ServoHealth.FAULT, servo_detail="no reply")
+    sm = _flying(servo_fault_action="hold")
+    sm.update(10.0, fault)
+    assert sm.faults == ["10.000 s: tilt servo fault: holding the measured tilt (no reply)"]
+    sm = _flying(servo_fault_action="land")
+    assert sm.update(10.0, fault).state is FlightState.LANDING
+    assert sm.faults == ["10.000 s: tilt servo fault (no reply)"]
+    assert sm.transitions[-1].reason == "failsafe: tilt servo fault"
+
+
 def test_that_ctrl_c_lands_and_a_second_ctrl_c_cuts() -> None:
     sm = _flying()
     assert sm.request(10.0, "stop") == (True, "landing")
