@@ -203,8 +203,10 @@ def test_that_in_lockstep_the_servo_follows_the_simulated_clock(tmp_path: Path) 
 
 def test_that_an_on_request_servo_runs_one_cycle_per_begin_finish_pair(
         emulator: EmulatedMX28) -> None:
-    # Fixture: a lockstep-style servo, serviced only when asked
-    servo = TiltServo(config_for(emulator, serve="on_request", rate_limit_goal=False)).start()
+    # Fixture: a lockstep-style servo, serviced only when asked, with the lockstep sessions'
+    # late-reply retries (a loaded CI host once lost the emulator's reply to the goal write)
+    servo = TiltServo(config_for(emulator, serve="on_request", rate_limit_goal=False,
+                                 late_reply_retries=2)).start()
     try:
         deadline = time.monotonic() + WAIT_S
         while True:  # the servo process answers "not connected" until it has configured it
