@@ -221,7 +221,7 @@ class MavlinkBridge:
         self._periods = {name: (1.0 / hz if hz > 0 else None)
                          for name, hz in config.rates_hz().items()}
         self._next_due: dict[str, float] = {}
-        self._heartbeat_now = False     # a phase change: the next pass sends a HEARTBEAT
+        self._heartbeat_now = False     # a phase change: the next pass sends the state
         self._chunk_id = 0
         self._gcs_heartbeat_t: float | None = None
         self._out: Counter[str] = Counter()
@@ -262,9 +262,9 @@ class MavlinkBridge:
         with self._lock:
             new: list[StatusEvent] = []
             if self._prev_phase is not None and tel.phase is not self._prev_phase:
-                # the new phase goes out in a HEARTBEAT at the next service pass, not up to a
-                # heartbeat period later: a phase that lasts less than that (a short lockstep
-                # mission, a brief LANDING) is still seen by the GCS
+                # the new phase goes out in a HEARTBEAT and an EXTENDED_SYS_STATE (the landed
+                # state) at the next service pass, not up to a period later: a phase that lasts
+                # less than that (a short lockstep mission, a brief LANDING) is still seen
                 self._heartbeat_now = True
                 if self._phase_events:
                     sev = Severity.EMERGENCY if tel.phase is FlightPhase.CUT \
@@ -453,8 +453,10 @@ class MavlinkBridge:
             tel = self._latest
             events = list(self._events)
             self._events.clear()
-            if self._heartbeat_now and "HEARTBEAT" in self._next_due:
-                self._next_due["HEARTBEAT"] = now     # due now, then its cadence again
+            if self._heartbeat_now:     # due now, then their cadence again
+                for name in ("HEARTBEAT", "EXTENDED_SYS_STATE"):
+                    if name in self._next_due:
+                        self._next_due[name] = now
             self._heartbeat_now = False
         for ev in events:
             self._chunk_id = self._chunk_id % 65535 + 1
