@@ -386,6 +386,22 @@ def _corrected_row(buf: FloatArray, r: int, corr: FloatArray, out: FloatArray) -
 
 
 @_jit
+def _rebase(corr: FloatArray, pv_new: FloatArray, q_new: FloatArray, pv_ref: FloatArray,
+            q_ref: FloatArray, t_ref: float) -> None:
+    """``Ukf._correct_outputs``: the outputs were built on (p, v, q)_ref at t_ref, the filter
+    now says (p, v, q)_new there: add the difference to the lazy correction."""
+    for i in range(3):
+        dv = pv_new[3 + i] - pv_ref[3 + i]
+        corr[i] = corr[i] + (pv_new[i] - pv_ref[i]) - dv * t_ref
+        corr[3 + i] = corr[3 + i] + dv
+    dw, dx, dy, dz = _mul(q_new[0], q_new[1], q_new[2], q_new[3],
+                          q_ref[0], -q_ref[1], -q_ref[2], -q_ref[3])
+    w, a, b, c = _mul(dw, dx, dy, dz, corr[6], corr[7], corr[8], corr[9])
+    n = math.sqrt(w * w + a * a + b * b + c * c)
+    corr[6], corr[7], corr[8], corr[9] = w / n, a / n, b / n, c / n
+
+
+@_jit
 def _reset_correction(corr: FloatArray) -> None:
     corr[:] = 0.0
     corr[6] = 1.0
@@ -588,16 +604,7 @@ def _horizon(t: float, dt: float, g_in: FloatArray, a_in: FloatArray, target_t: 
             _reset_correction(corr)
         else:
             _corrected_row(buf, last, corr, newest)
-            t_ref = buf[last, ROW_T]
-            for i in range(3):
-                dv = x[3 + i] - newest[3 + i]
-                corr[i] = corr[i] + (x[i] - newest[i]) - dv * t_ref
-                corr[3 + i] = corr[3 + i] + dv
-            dw, dx, dy, dz = _mul(q_ref[0], q_ref[1], q_ref[2], q_ref[3],
-                                  newest[6], -newest[7], -newest[8], -newest[9])
-            w, a, b, c = _mul(dw, dx, dy, dz, corr[6], corr[7], corr[8], corr[9])
-            n = math.sqrt(w * w + a * a + b * b + c * c)
-            corr[6], corr[7], corr[8], corr[9] = w / n, a / n, b / n, c / n
+            _rebase(corr, x, q_ref, newest[0:6], newest[6:10], buf[last, ROW_T])
     if count == 0:
         for i in range(6):
             newest[i] = x[i]
@@ -661,16 +668,7 @@ def fuse_now(t_c: float, pos: FloatArray, q_m: FloatArray, shift: bool, t_filter
     # the outputs were built on the filter's state before the update (Ukf._correct_outputs)
     head_q, count = ij[0], ij[1]
     if count > 0:
-        t_ref = t_filter
-        for i in range(3):
-            dv = x_out[3 + i] - x[3 + i]
-            corr[i] = corr[i] + (x_out[i] - x[i]) - dv * t_ref
-            corr[3 + i] = corr[3 + i] + dv
-        dw, dx, dy, dz = _mul(q_out[0], q_out[1], q_out[2], q_out[3],
-                              q_ref[0], -q_ref[1], -q_ref[2], -q_ref[3])
-        w, a, b, c = _mul(dw, dx, dy, dz, corr[6], corr[7], corr[8], corr[9])
-        n = math.sqrt(w * w + a * a + b * b + c * c)
-        corr[6], corr[7], corr[8], corr[9] = w / n, a / n, b / n, c / n
+        _rebase(corr, x_out, q_out, x, q_ref, t_filter)
         _corrected_row(buf, (head_q + count - 1) % buf.shape[0], corr, newest)
     x[:] = x_out
     P[:, :] = P_out
