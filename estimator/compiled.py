@@ -578,8 +578,28 @@ def _horizon(t: float, dt: float, g_in: FloatArray, a_in: FloatArray, target_t: 
     q = ROW_Q
     buf[r, q], buf[r, q + 1], buf[r, q + 2], buf[r, q + 3] = _mul(
         corr[6], -corr[7], -corr[8], -corr[9], q_tmp[0], q_tmp[1], q_tmp[2], q_tmp[3])
-    count += 1
-    # feed the filter the inputs due (Ukf._advance_filter)
+    ij[1] = count + 1
+    return _advance(target_t, t_filter, x, P, q_ref, buf, ij, corr, hist_t, hist_x, hist_P,
+                    hist_q, hist_gyro, hist_accel, hij, rates, Q, gravity_w, Wm, Wc, scale,
+                    min_variance, max_pos_variance, sig, work, U, devT, q_tmp, x_out, P_out,
+                    q_out, newest)
+
+
+@_jit
+def _advance(target_t: float, t_filter: float, x: FloatArray, P: FloatArray,
+             q_ref: FloatArray, buf: FloatArray, ij: Any, corr: FloatArray,
+             hist_t: FloatArray, hist_x: FloatArray, hist_P: FloatArray, hist_q: FloatArray,
+             hist_gyro: FloatArray, hist_accel: FloatArray, hij: Any, rates: FloatArray,
+             Q: FloatArray, gravity_w: FloatArray, Wm: FloatArray, Wc: FloatArray,
+             scale: float, min_variance: float, max_pos_variance: float, sig: FloatArray,
+             work: FloatArray, U: FloatArray, devT: FloatArray, q_tmp: FloatArray,
+             x_out: FloatArray, P_out: FloatArray, q_out: FloatArray, newest: FloatArray
+             ) -> tuple[int, float]:
+    """``Ukf._advance_filter``: feed the filter every queued input up to ``target_t``, then
+    re-base the outputs on it; ``newest`` = the output at the newest input (status 0).
+    -> (status, filter time), status as :func:`horizon_predict`'s."""
+    cap = buf.shape[0]
+    head, count = ij[0], ij[1]
     last = -1
     st = 0
     while count > 0 and buf[head, ROW_T] <= target_t + 1e-9:
@@ -614,6 +634,23 @@ def _horizon(t: float, dt: float, g_in: FloatArray, a_in: FloatArray, target_t: 
         _corrected_row(buf, (head + count - 1) % cap, corr, newest)
     return st, t_filter
 
+
+@_jit
+def advance(target_t: float, t_filter: float, x: FloatArray, P: FloatArray,
+            q_ref: FloatArray, buf: FloatArray, ij: Any, corr: FloatArray,
+            hist_t: FloatArray, hist_x: FloatArray, hist_P: FloatArray, hist_q: FloatArray,
+            hist_gyro: FloatArray, hist_accel: FloatArray, hij: Any, rates: FloatArray,
+            Q: FloatArray, gravity_w: FloatArray, Wm: FloatArray, Wc: FloatArray,
+            scale: float, min_variance: float, max_pos_variance: float, sig: FloatArray,
+            work: FloatArray, U: FloatArray, devT: FloatArray, q_tmp: FloatArray,
+            x_out: FloatArray, P_out: FloatArray, q_out: FloatArray, newest: FloatArray
+            ) -> tuple[int, float]:
+    """``Ukf._advance_filter`` in one call (a pose that brings the filter to its capture
+    time): see :func:`_advance`."""
+    return _advance(target_t, t_filter, x, P, q_ref, buf, ij, corr, hist_t, hist_x, hist_P,
+                    hist_q, hist_gyro, hist_accel, hij, rates, Q, gravity_w, Wm, Wc, scale,
+                    min_variance, max_pos_variance, sig, work, U, devT, q_tmp, x_out, P_out,
+                    q_out, newest)
 
 
 @_jit

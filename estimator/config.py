@@ -54,7 +54,7 @@ class EstimatorConfig:
             "so that poses are fused when they arrive instead of replaying the IMU; "
             "0: the filter stays at the newest sample and every late pose is replayed")
     latency_window: int = spec(32, ge=1, le=10000,
-                               doc="poses over which the smallest latency sets the horizon")
+                               doc="poses whose latencies set the horizon (about the smallest)")
     history_s: float = spec(0.25, gt=0.0, le=2.0,
                             doc="how far back a late pose can still be fused")
     max_imu_rate_hz: float = spec(1000.0, gt=0.0, le=10000.0, doc="sizes the history ring")

@@ -233,6 +233,8 @@ class CompiledKernel:
                                  q.copy(), buf, ij, corr, float(-self.gravity_w[2]), *hist,
                                  np.zeros(3, dtype=np.int64), rates, 1e-12, 1.0, np.zeros(10),
                                  np.zeros(8), np.array([1e-4, 1.0, 0.03, 1e-4]))
+            self.advance(0.004, 0.0, x.copy(), P.copy(), q.copy(), buf, ij, corr, *hist,
+                         np.zeros(3, dtype=np.int64), rates, 1e-12, 1.0, np.zeros(10))
 
     def fuse_now(self, t_c: float, pos: FloatArray, q_m: FloatArray, shift: bool,
                  t_filter: float, x: FloatArray, P: FloatArray, q_ref: FloatArray,
@@ -266,6 +268,21 @@ class CompiledKernel:
             self._Q, self.gravity_w, self.Wm, self.Wc, self.scale, min_variance,
             max_pos_variance, self._sig, self._work, self._U, self._dev, self._q_tmp,
             self._x_out, self._P_out, self._q_out, newest, fobs, fconst)
+        return int(status), float(t_f)
+
+    def advance(self, target_t: float, t_filter: float, x: FloatArray, P: FloatArray,
+                q_ref: FloatArray, buf: FloatArray, ij: npt.NDArray[Any], corr: FloatArray,
+                hist_t: FloatArray, hist_x: FloatArray, hist_P: FloatArray, hist_q: FloatArray,
+                hist_gyro: FloatArray, hist_accel: FloatArray, hij: npt.NDArray[Any],
+                rates: FloatArray, min_variance: float, max_pos_variance: float,
+                newest: FloatArray) -> tuple[int, float]:
+        """``Ukf._advance_filter`` in one call (see :func:`compiled.advance`) -> (status,
+        filter time)."""
+        status, t_f = compiled.advance(
+            target_t, t_filter, x, P, q_ref, buf, ij, corr, hist_t, hist_x, hist_P, hist_q,
+            hist_gyro, hist_accel, hij, rates, self._Q, self.gravity_w, self.Wm, self.Wc,
+            self.scale, min_variance, max_pos_variance, self._sig, self._work, self._U,
+            self._dev, self._q_tmp, self._x_out, self._P_out, self._q_out, newest)
         return int(status), float(t_f)
 
     def predict_step(self, x: FloatArray, P: FloatArray, q_ref: FloatArray, Q: FloatArray,

@@ -78,3 +78,40 @@ def test_that_the_plain_float_output_state_is_the_estimates(delay_s: float) -> N
                                     tuple(e.q_wb.tolist()), tuple(e.omega_b_rad_s.tolist()))
     assert est.force_ext_w_n() == tuple(e.force_ext_w_n.tolist())
     assert all(type(v) is float for v in (*pos, *vel, *q, *omega))
+
+
+def _fly_with_an_early_pose(window: int = 32) -> tuple[Ukf, int, int]:
+    """1 kHz IMU at rest, 100 Hz poses 11 ms late, every 40th pose only 9 ms late (read right
+    after a delayed IMU sample) -> (filter, IMU samples, poses fused)."""
+    est = Ukf(EstimatorConfig(latency_window=window))
+    est.initialize(0.0, (0.0, 0.0, 1.0), (1.0, 0.0, 0.0, 0.0))
+    n_imu, dt = 4000, 0.001
+    arrivals: list[tuple[float, float]] = []        # (arrival, capture) times
+    for k in range(n_imu):
+        t = dt * (k + 1)
+        if k % 10 == 0:
+            late = 0.009 if (k // 10) % 40 == 39 else 0.011
+            arrivals.append((t + late, t))
+        est.predict(t, (0.0, 0.0, 0.0), (0.0, 0.0, 9.81))
+        while arrivals and arrivals[0][0] <= t + 1e-9:
+            est.update_pose(arrivals.pop(0)[1], (0.0, 0.0, 1.0), (1.0, 0.0, 0.0, 0.0))
+    return est, n_imu, est.health().poses_accepted
+
+
+def test_that_one_early_pose_does_not_pull_the_horizon_down_for_the_whole_window() -> None:
+    # Fixture: a pose in 40 looks 2 ms less late than the others
+    est, n_imu, accepted = _fly_with_an_early_pose()
+    # Assert: the horizon stays at the usual 11 ms and no pose replays the IMU (one filter step
+    # per sample). With the smallest latency as the horizon (9 ms) each of the ~350 other
+    # poses would replay 2 samples: ~700 more steps
+    assert accepted >= 390
+    assert est.fusion_delay_s == pytest.approx(0.011, abs=1e-6)
+    assert est.filter_steps <= n_imu + 10  # (the first poses, while the window fills)
+
+
+def test_that_a_short_latency_window_takes_the_smallest_latency() -> None:
+    # Fixture: a window of 4 poses has no eighth to leave out
+    est, _, _ = _fly_with_an_early_pose(window=4)
+    # Assert: the early pose sets the horizon while it is in the window (the last pose was
+    # one, at 4000 ms: 9 ms late)
+    assert est.fusion_delay_s == pytest.approx(0.009, abs=1e-6)
