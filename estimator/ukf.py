@@ -741,10 +741,10 @@ class Ukf:
             # to it, from the input where the compiled loop stopped
             self._x = x = np.ascontiguousarray(self._x)
             self._P = P = np.ascontiguousarray(self._P)
-            self._q_ref = q = np.ascontiguousarray(self._q_ref)
+            self._q_ref = q_arr = np.ascontiguousarray(self._q_ref)
             cfg = self.cfg
             status, self._t_s = step.advance(
-                t_target_s, self._t_s, x, P, q, pending.buf, pending.ij, pending.corr,
+                t_target_s, self._t_s, x, P, q_arr, pending.buf, pending.ij, pending.corr,
                 self._hist_t, self._hist_x, self._hist_P, self._hist_q, self._hist_gyro,
                 self._hist_accel, self._hij, self._noise_rates, cfg.min_variance,
                 cfg.max_pos_sigma_m ** 2, self._newest_out)
