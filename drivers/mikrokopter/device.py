@@ -593,9 +593,7 @@ class FlightCtrl:
         if len(speeds_hz) != len(dirs):
             raise ValueError(f"{self.device}: expected {len(dirs)} spin rates, "
                              f"got {len(speeds_hz)}")
-        periods = tuple(mkm.spin_hz_to_half_period(d * abs(s))
-                        for d, s in zip(dirs, speeds_hz, strict=True))
-        self._write(framing_tk3.encode_frame(mkm.SpinRates(periods).encode()))
+        self._write(framing_tk3.encode_frame(mkm.encode_spin_rates_hz(speeds_hz, dirs)))
 
     def start_motors(self, timeout_s: float = 3.0, idle_spin_hz: float = 16.0
                      ) -> MotorsSnapshot:

@@ -150,6 +150,21 @@ def spin_hz_to_half_period(speed_hz: float) -> int:
     return max(-HALF_PERIOD_SLOWEST, min(HALF_PERIOD_SLOWEST, p))
 
 
+_W_STRUCTS = {n: struct.Struct(f">{n}h") for n in range(1, 13)}
+
+
+def encode_spin_rates_hz(speeds_hz: Sequence[float], directions: Sequence[int]) -> bytes:
+    """The ``w`` message (unframed) for spin rates in Hz, each signed by its motor's direction
+    (+1 / -1; the magnitude of the rate is used): ``SpinRates.from_hz(d * |s|).encode()``
+    without the intermediate objects (the 500 Hz-1 kHz send path). Non-finite rates raise."""
+    periods = [spin_hz_to_half_period(d * abs(s)) for d, s in zip(directions, speeds_hz,
+                                                                   strict=True)]
+    packer = _W_STRUCTS.get(len(periods))
+    if packer is None:
+        packer = struct.Struct(f">{len(periods)}h")
+    return b"w" + packer.pack(*periods)
+
+
 def half_period_to_spin_hz(half_period_us: int) -> float:
     """The spin rate in Hz for a tk3 half period in µs (``500000 / p``; 0 -> 0.0)."""
     if half_period_us == 0:

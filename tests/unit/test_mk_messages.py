@@ -184,6 +184,23 @@ def stock_messages(draw: st.DrawFn) -> m.StockMessage:
     return m.EngineTestAck()
 
 
+@given(st.lists(st.floats(allow_nan=False, allow_infinity=False, min_value=-1e6,
+                          max_value=1e6), min_size=1, max_size=8),
+       st.lists(st.sampled_from((1, -1)), min_size=8, max_size=8))
+def test_that_the_fast_w_encoder_gives_the_spin_rates_message_bytes(
+        speeds: list[float], directions: list[int]) -> None:
+    dirs = directions[:len(speeds)]
+    expected = m.SpinRates.from_hz([d * abs(s) for d, s in zip(dirs, speeds, strict=True)])
+    assert m.encode_spin_rates_hz(speeds, dirs) == expected.encode()
+
+
+def test_that_the_fast_w_encoder_refuses_a_non_finite_rate_and_a_length_mismatch() -> None:
+    with pytest.raises(ValueError, match="not finite"):
+        m.encode_spin_rates_hz([80.0, math.nan], [1, -1])
+    with pytest.raises(ValueError):
+        m.encode_spin_rates_hz([80.0, 80.0, 80.0], [1, -1])
+
+
 @given(stock_messages())
 def test_that_every_stock_message_round_trips_through_the_framing(msg: m.StockMessage) -> None:
     from drivers.mikrokopter import framing_stock as mk
