@@ -4,9 +4,12 @@ baseline it is judged against, measured in the same run.
 - UKF predict + update (sum of the medians; 15 error states, MoCap 10 ms late, the default
   fusion horizon) against stock filterpy running the same logic: <= 40 us and >= 20x.
 - Tick compute p50 of a lockstep flight through the byte path against the tick's numerics
-  alone (UKF predict, a pose every 5th tick, the estimate, the controller; no I/O): <= 1.5x.
+  alone (UKF predict, a pose every 5th tick, the estimate as the loop reads it, the
+  controller; no I/O): <= 1.5x.
 - Lockstep flight through the byte path, sim s per wall s (against ``simulate``, truth, of
-  the same mission: no bytes, no second process): >= 10x real time.
+  the same mission: no bytes, no second process): >= 10x real time. Its floor on this
+  machine: a bare pty round trip between two processes plus the numerics, per 2 ms tick
+  (nothing else computed, no physics); the row says how far that floor allows.
 - ``fasthex simulate --estimator ukf``: >= 30x; ``fasthex simulate`` (truth + noise): >= 60x.
 - Realtime 1 kHz emulated session against the same at 500 Hz: misses < 0.1 %, compute p99
   < 0.5 ms, position error no worse. The flights are the shipped sessions ``exp1-emulated``
@@ -30,10 +33,13 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
 import json
+import multiprocessing
+import select
 import subprocess
 import sys
 import tempfile
 import time
+import tty
 from dataclasses import replace
 from pathlib import Path
 from typing import Literal
@@ -154,13 +160,47 @@ def numerics_baseline(n: int = 3000) -> float:
         ukf.predict(t, (0.0, 0.0, 0.0), (0.0, 0.0, 9.81))
         if k % 5 == 0:
             ukf.update_pose(t - 0.004, (0.0, 0.0, 1.0), (1.0, 0.0, 0.0, 0.0))
-        e = ukf.estimate()
-        p, v, q, w = (e.pos_w_m.tolist(), e.vel_w_m_s.tolist(), e.q_wb.tolist(),
-                      e.omega_b_rad_s.tolist())
-        computer.step(5.0 + t, VehicleState((p[0], p[1], p[2]), (v[0], v[1], v[2]),
-                                            (q[0], q[1], q[2], q[3]), (w[0], w[1], w[2])),
-                      0.0)
+        # what the loop reads of the estimate each tick (not the full estimate())
+        state = VehicleState(*ukf.output_state())
+        force = ukf.force_ext_w_n()
+        ukf.usable()
+        computer.step(5.0 + t, state, 0.0, force_ext_w_n=force)
         out[k] = (time.perf_counter_ns() - t0) / 1e3
+    return float(np.median(out[200:]))
+
+
+def _echo(fd: int) -> None:
+    """The far end of :func:`pty_round_trip_us`: send back what arrives, until ``q``."""
+    while True:
+        select.select([fd], [], [])
+        data = os.read(fd, 4096)
+        if data.endswith(b"q"):
+            return
+        os.write(fd, data)
+
+
+def pty_round_trip_us(n: int = 3000) -> float:
+    """Median (us) of a bare pty round trip between two processes: 16 bytes out, the same
+    back (a ``w`` frame answered by the board), nothing computed on either side. A lockstep
+    tick waits for one such round trip at least, plus the board's physics step."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    ctx = multiprocessing.get_context("fork")
+    echo = ctx.Process(target=_echo, args=(master,), daemon=True)
+    echo.start()
+    frame, out = b"^w" + bytes(13) + b"$", np.empty(n)
+    for k in range(n):
+        t0 = time.perf_counter_ns()
+        os.write(slave, frame)
+        got = 0
+        while got < len(frame):
+            select.select([slave], [], [])
+            got += len(os.read(slave, 4096))
+        out[k] = (time.perf_counter_ns() - t0) / 1e3
+    os.write(slave, b"q")
+    echo.join(5.0)
+    os.close(master)
+    os.close(slave)
     return float(np.median(out[200:]))
 
 
@@ -184,6 +224,7 @@ def main() -> int:
     fast, stock, worst = ukf_figures(args.ukf_seconds)
     parts = tick_breakdown()
     base_us = numerics_baseline()
+    pty_us = pty_round_trip_us()
     sim_truth = simulate_speed("truth", None)
     sim_ukf = simulate_speed("ukf", None)
     with tempfile.TemporaryDirectory(prefix="fasthex-speed-") as d:
@@ -210,6 +251,10 @@ def main() -> int:
     row("lockstep flight, byte path", f"{lock_x:.1f}x real time",
         f"simulate truth {sim_truth:.1f}x", f"{lock_x / sim_truth:.2f}", ">= 10x",
         lock_x >= 10.0)
+    floor_x = 2000.0 / (pty_us + base_us)   # 500 Hz: 2000 us of simulated time per tick
+    row("lockstep floor: a bare pty round trip + the numerics", f"{pty_us + base_us:.0f} us/tick",
+        f"pty {pty_us:.0f} us + numerics {base_us:.0f} us", f"at most {floor_x:.1f}x real time",
+        ">= 10x possible?", floor_x >= 10.0)
     row("simulate --estimator ukf", f"{sim_ukf:.1f}x real time",
         f"truth {sim_truth:.1f}x", f"{sim_ukf / sim_truth:.2f}", ">= 30x", sim_ukf >= 30.0)
     row("simulate (truth + noise)", f"{sim_truth:.1f}x real time",

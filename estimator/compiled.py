@@ -714,3 +714,115 @@ def fuse_now(t_c: float, pos: FloatArray, q_m: FloatArray, shift: bool, t_filter
     hist_P[head, :, :] = P
     hist_q[head, :] = q_ref
     return 0, nis
+
+
+@_jit
+def fuse_in_past(t_c: float, pos: FloatArray, q_m: FloatArray, t_filter: float,
+                 x: FloatArray, P: FloatArray, q_ref: FloatArray, R: FloatArray,
+                 meas_idx: Any, gate_nis: float, hist_t: FloatArray, hist_x: FloatArray,
+                 hist_P: FloatArray, hist_q: FloatArray, hist_gyro: FloatArray,
+                 hist_accel: FloatArray, hij: Any, buf: FloatArray, ij: Any,
+                 corr: FloatArray, rates: FloatArray, Q: FloatArray, gravity_w: FloatArray,
+                 Wm: FloatArray, Wc: FloatArray, scale: float, min_variance: float,
+                 max_pos_variance: float, sig: FloatArray, work: FloatArray, U: FloatArray,
+                 devT: FloatArray, q_tmp: FloatArray, x_out: FloatArray, P_out: FloatArray,
+                 q_out: FloatArray, y: FloatArray, S: FloatArray, z: FloatArray,
+                 pose_out: FloatArray, newest: FloatArray, xs: FloatArray, Ps: FloatArray,
+                 qs: FloatArray, bak_x: FloatArray, bak_P: FloatArray, bak_q: FloatArray
+                 ) -> tuple[int, float]:
+    """``Ukf._fuse_in_past`` in one call, for a finite filter: rewind the history to the IMU
+    sample nearest ``t_c``, fuse the pose moved to that sample (gated), replay the newer
+    inputs rewriting the history, make the result the filter's state and re-base the outputs.
+
+    -> (status, NIS). 0: fused; 1: P not positive definite or a non-finite replay step,
+    nothing written (the history restored): the Python path takes the pose from the start;
+    2: refused by the gate or not finite, nothing written, ``pose_out`` = the pose as
+    refused (p, q); 3: older than the history, nothing written. ``xs``, ``Ps``, ``qs`` are
+    scratch for the replayed state, ``bak_*`` (history-sized) for the entries it rewrites."""
+    n = hist_t.shape[0]
+    head, hlen = hij[0], hij[1]
+    k = 0
+    while k < hlen and hist_t[(head - k) % n] > t_c:
+        k += 1
+    if k >= hlen:
+        return 3, math.nan
+    j = (head - k) % n
+    if k > 0 and hist_t[(j + 1) % n] - t_c < t_c - hist_t[j]:
+        k -= 1                              # the next sample is nearer the capture time
+        j = (j + 1) % n
+    for i in range(x.shape[0]):
+        xs[i] = hist_x[j, i]
+    Ps[:, :] = hist_P[j]
+    for i in range(4):
+        qs[i] = hist_q[j, i]
+    # the pose moved to the sample's time (Ukf._shift_pose)
+    dt_s = hist_t[j] - t_c
+    for i in range(3):
+        pose_out[i] = pos[i]
+    for i in range(4):
+        pose_out[3 + i] = q_m[i]
+    if abs(dt_s) > 1e-9:
+        for i in range(3):
+            pose_out[i] = pos[i] + dt_s * xs[3 + i]
+        _mul_exp_normalized(q_m, dt_s * (hist_gyro[j, 0] - xs[9]),
+                            dt_s * (hist_gyro[j, 1] - xs[10]),
+                            dt_s * (hist_gyro[j, 2] - xs[11]), pose_out[3:7])
+    # z = (p, Log(q_ref^-1 (x) q)), as quaternion.log_relative_single
+    w, a, b, c = qs[0], qs[1], qs[2], qs[3]
+    bw, bx, by, bz = pose_out[3], pose_out[4], pose_out[5], pose_out[6]
+    rw = w * bw + a * bx + b * by + c * bz
+    rx = w * bx - a * bw - b * bz + c * by
+    ry = w * by + a * bz - b * bw - c * bx
+    rz = w * bz - a * by + b * bx - c * bw
+    s = math.sqrt(rx * rx + ry * ry + rz * rz)
+    for i in range(3):
+        z[i] = pose_out[i]
+    if s == 0.0:
+        z[3] = z[4] = z[5] = 0.0
+    else:
+        f = 2.0 * math.atan2(s, abs(rw)) / s * (1.0 if rw >= 0.0 else -1.0)
+        z[3], z[4], z[5] = rx * f, ry * f, rz * f
+    st, nis = update_step(xs, Ps, qs, z, R, meas_idx, Wm, Wc, scale, min_variance,
+                          max_pos_variance, sig, work, U, x_out, P_out, q_out, y, S)
+    if st == 1:
+        return 1, nis
+    if st == 2 or not nis <= gate_nis:
+        return 2, nis
+    for m in range(k + 1):                  # the entries the replay rewrites, j .. head
+        i = (j + m) % n
+        bak_x[m, :] = hist_x[i]
+        bak_P[m, :, :] = hist_P[i]
+        bak_q[m, :] = hist_q[i]
+    xs[:] = x_out
+    Ps[:, :] = P_out
+    qs[:] = q_out
+    hist_x[j, :] = xs
+    hist_P[j, :, :] = Ps
+    hist_q[j, :] = qs
+    replayed = 0
+    while k > 0:
+        k -= 1
+        i = (head - k) % n
+        st = _step(xs, Ps, qs, hist_t[i] - hist_t[(i - 1) % n], hist_gyro[i], hist_accel[i],
+                   rates, Q, gravity_w, Wm, Wc, scale, min_variance, max_pos_variance, sig,
+                   work, U, devT, q_tmp, x_out, P_out, q_out)
+        if st != 0:                         # the Python path stores what it gets: hand over
+            for m in range(replayed + 1):
+                r = (j + m) % n
+                hist_x[r, :] = bak_x[m]
+                hist_P[r, :, :] = bak_P[m]
+                hist_q[r, :] = bak_q[m]
+            return 1, nis
+        hist_x[i, :] = xs
+        hist_P[i, :, :] = Ps
+        hist_q[i, :] = qs
+        replayed += 1
+    hij[2] += replayed                      # replays count as filter steps (Ukf.filter_steps)
+    head_q, count = ij[0], ij[1]
+    if count > 0:                           # the outputs were built on the old filter state
+        _rebase(corr, xs, qs, x, q_ref, t_filter)
+        _corrected_row(buf, (head_q + count - 1) % buf.shape[0], corr, newest)
+    x[:] = xs
+    P[:, :] = Ps
+    q_ref[:] = qs
+    return 0, nis

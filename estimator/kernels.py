@@ -202,6 +202,9 @@ class CompiledKernel:
         self._Q = np.zeros((n, n))
         self._x_out, self._P_out, self._q_out = np.empty(n), np.empty((n, n)), np.empty(4)
         self._y, self._S, self._z = np.empty(6), np.empty((6, 6)), np.empty(6)
+        # fuse_in_past: the replayed state, and the history entries it rewrites (sized on use)
+        self._xs, self._Ps, self._qs = np.empty(n), np.empty((n, n)), np.empty(4)
+        self._bak = (np.empty((0, n)), np.empty((0, n, n)), np.empty((0, 4)))
         self._warm_up()
 
     def _warm_up(self) -> None:
@@ -235,6 +238,12 @@ class CompiledKernel:
                                  np.zeros(8), np.array([1e-4, 1.0, 0.03, 1e-4]))
             self.advance(0.004, 0.0, x.copy(), P.copy(), q.copy(), buf, ij, corr, *hist,
                          np.zeros(3, dtype=np.int64), rates, 1e-12, 1.0, np.zeros(10))
+        hij = np.array([n_hist - 1, n_hist, 0], dtype=np.int64)
+        self.fuse_in_past(0.001, np.zeros(3), q.copy(), 0.004, x.copy(), P.copy(), q.copy(), R,
+                          1e9, np.arange(n_hist, dtype=np.float64) * 0.001, np.tile(x, (n_hist, 1)),
+                          np.tile(P, (n_hist, 1, 1)), np.tile(q, (n_hist, 1)), hist[4],
+                          hist[5], hij, buf, ij, corr, rates, 1e-12, 1.0, np.zeros(7),
+                          np.zeros(10))
 
     def fuse_now(self, t_c: float, pos: FloatArray, q_m: FloatArray, shift: bool,
                  t_filter: float, x: FloatArray, P: FloatArray, q_ref: FloatArray,
@@ -284,6 +293,30 @@ class CompiledKernel:
             self.scale, min_variance, max_pos_variance, self._sig, self._work, self._U,
             self._dev, self._q_tmp, self._x_out, self._P_out, self._q_out, newest)
         return int(status), float(t_f)
+
+    def fuse_in_past(self, t_c: float, pos: FloatArray, q_m: FloatArray, t_filter: float,
+                     x: FloatArray, P: FloatArray, q_ref: FloatArray, R: FloatArray,
+                     gate_nis: float, hist_t: FloatArray, hist_x: FloatArray,
+                     hist_P: FloatArray, hist_q: FloatArray, hist_gyro: FloatArray,
+                     hist_accel: FloatArray, hij: npt.NDArray[Any], buf: FloatArray,
+                     ij: npt.NDArray[Any], corr: FloatArray, rates: FloatArray,
+                     min_variance: float, max_pos_variance: float, pose_out: FloatArray,
+                     newest: FloatArray) -> tuple[int, float]:
+        """``Ukf._fuse_in_past`` in one call (see :func:`compiled.fuse_in_past`) -> (status,
+        NIS)."""
+        n_hist = hist_t.shape[0]
+        if self._bak[0].shape[0] != n_hist:  # once per filter: the history's size
+            n = self.n
+            self._bak = (np.empty((n_hist, n)), np.empty((n_hist, n, n)),
+                         np.empty((n_hist, 4)))
+        status, nis = compiled.fuse_in_past(
+            t_c, pos, q_m, t_filter, x, P, q_ref, R, self._meas_idx, gate_nis, hist_t, hist_x,
+            hist_P, hist_q, hist_gyro, hist_accel, hij, buf, ij, corr, rates, self._Q,
+            self.gravity_w, self.Wm, self.Wc, self.scale, min_variance, max_pos_variance,
+            self._sig, self._work, self._U, self._dev, self._q_tmp, self._x_out, self._P_out,
+            self._q_out, self._y, self._S, self._z, pose_out, newest, self._xs, self._Ps,
+            self._qs, *self._bak)
+        return int(status), float(nis)
 
     def predict_step(self, x: FloatArray, P: FloatArray, q_ref: FloatArray, Q: FloatArray,
                      dt: float, gyro_rad_s: FloatArray, accel_m_s2: FloatArray,

@@ -923,6 +923,29 @@ class Ukf:
         return (V * np.maximum(w, floor)) @ V.T
 
     def _fuse_in_past(self, t_c: float, pos: FloatArray, q_m: FloatArray) -> PoseVerdict:
+        step = self._step_kernel
+        if step is not None and not self._nonfinite:     # the sequence below, compiled
+            cfg = self.cfg
+            pending = self._pending
+            self._x = x = np.ascontiguousarray(self._x)
+            self._P = P = np.ascontiguousarray(self._P)
+            self._q_ref = q = np.ascontiguousarray(self._q_ref)
+            out = self._pose_out
+            status, nis = step.fuse_in_past(
+                t_c, pos, q_m, self._t_s, x, P, q, self._R, cfg.gate_nis, self._hist_t,
+                self._hist_x, self._hist_P, self._hist_q, self._hist_gyro, self._hist_accel,
+                self._hij, pending.buf, pending.ij, pending.corr, self._noise_rates,
+                cfg.min_variance, cfg.max_pos_sigma_m ** 2, out, self._newest_out)
+            if status == 3:
+                self._too_old += 1
+                return PoseVerdict.TOO_OLD
+            if status != 1:     # 1: a repair or a non-finite step, the path below takes it
+                self._last_nis = nis
+                if status == 2:
+                    return self._rejected_pose(out[0:3].copy(), out[3:7].copy())
+                if pending:
+                    pending.set_newest(self._newest_out)
+                return self._accepted_pose(t_c)
         n_hist = len(self._hist_t)
         k = 0
         while k < self._hist_len and self._hist_t[(self._hist_head - k) % n_hist] > t_c:

@@ -134,5 +134,5 @@ def test_that_no_tick_waits_on_a_compile() -> None:
     assert got["compiles"] == 0
     assert got["after"] == got["before"]
     used = ("predict_step", "update_step", "predict", "update", "horizon_predict",
-            "fuse_now", "advance")
+            "fuse_now", "advance", "fuse_in_past")
     assert all(got["before"][name] == 1 for name in used), got["before"]
