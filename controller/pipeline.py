@@ -53,6 +53,9 @@ class FlightComputer:
         self._next_auto_s = 0.0
         self._axes_alpha = math.nan
         self._axes: list[tuple[float, float, float]] = []
+        #: per rotor (sin yaw, cos yaw, tilt sign): the thrust axes in plain floats
+        self._axis_terms = [(math.sin(y), math.cos(y), s) for y, s in zip(
+            self.model.arm_yaw_rad.tolist(), self.model.tilt_signs.tolist(), strict=True)]
 
     def warm_up(self, alpha_rad: float | None = None) -> None:
         """Build the per-tilt caches of a tick now (the wrench mapper's 6x6 map, compiled or
@@ -94,9 +97,13 @@ class FlightComputer:
                        ) -> tuple[Vec3, float]:
         """The body force of the given thrusts at tilt ``alpha_rad`` (N, body frame) and its
         force efficiency eta_f (axes cached per alpha; plain floats, no numpy per call)."""
-        if alpha_rad != self._axes_alpha:
-            self._axes = [(float(a[0]), float(a[1]), float(a[2]))
-                          for a in self.model.thrust_axes(alpha_rad)]
+        if alpha_rad != self._axes_alpha:  # VehicleModel.thrust_axes, without numpy
+            axes = []
+            for sy, cy, sign in self._axis_terms:
+                a = sign * alpha_rad
+                s = math.sin(a)
+                axes.append((sy * s, -cy * s, math.cos(a)))
+            self._axes = axes
             self._axes_alpha = alpha_rad
         fx = fy = fz = tot = 0.0
         for f, a in zip(thrusts_n, self._axes, strict=True):
