@@ -184,8 +184,10 @@ def test_that_the_qtm_rt_sdk_reads_a_known_pose_in_z_up_millimetres() -> None:
     assert state == qtm_rt.QRTEvent.EventCaptureStarted
     assert "<Name>fasthex</Name>" in xml and "<Name>pad</Name>" in xml
     last = packets[-1]
+    # consecutive frames, nothing lost (a sixth may arrive before the stop, on a loaded host)
+    assert len(packets) >= 5
     assert [p.framenumber for p in packets] == list(range(packets[0].framenumber,
-                                                          packets[0].framenumber + 5))
+                                                          packets[0].framenumber + len(packets)))
     info, bodies = last.get_6d()
     assert info.body_count == 2
     pos, rot = bodies[0]
