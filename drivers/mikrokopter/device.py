@@ -35,7 +35,6 @@ from __future__ import annotations
 import contextlib
 import enum
 import fnmatch
-import itertools
 import logging
 import math
 import threading
@@ -332,11 +331,18 @@ class FlightCtrlConfig:
 
 
 class _RateMeter:
-    """Arrival times over a sliding window (host clock, ns)."""
+    """Arrival times over a sliding window (host clock, ns).
+
+    The largest interval in the window is kept as it goes (a deque of the intervals that can
+    still be the largest, by their earlier arrival): a stats call costs the same at 1 kHz as
+    at 10 Hz, instead of a pass over the window's thousand arrivals with the driver's lock
+    held (it was the flight loop's costliest tick at 1 kHz)."""
 
     def __init__(self, window_ns: int) -> None:
         self.window_ns = window_ns
         self.arrivals: deque[int] = deque(maxlen=8192)
+        #: (earlier arrival, interval), intervals strictly decreasing front to back
+        self.gaps: deque[tuple[int, int]] = deque()
         self.received = 0
         self.first_ns: int | None = None
 
@@ -344,23 +350,35 @@ class _RateMeter:
         self.received += 1
         if self.first_ns is None:
             self.first_ns = t_ns
-        self.arrivals.append(t_ns)
+        arrivals, gaps = self.arrivals, self.gaps
+        if arrivals:
+            last = arrivals[-1]
+            gap = t_ns - last
+            while gaps and gaps[-1][1] <= gap:   # never the largest again: gone before it
+                gaps.pop()
+            gaps.append((last, gap))
+        arrivals.append(t_ns)
 
     def reset(self) -> None:
         self.arrivals.clear()
+        self.gaps.clear()
         self.first_ns = None
 
     def stats(self, name: str, nominal_hz: float, now_ns: int, missing: int = 0) -> StreamStats:
-        while self.arrivals and self.arrivals[0] < now_ns - self.window_ns:
-            self.arrivals.popleft()
-        arr = list(self.arrivals)
+        arrivals, gaps = self.arrivals, self.gaps
+        while arrivals and arrivals[0] < now_ns - self.window_ns:
+            arrivals.popleft()
+        # an interval is in the window while its earlier arrival is
+        oldest = arrivals[0] if arrivals else now_ns + 1
+        while gaps and gaps[0][0] < oldest:
+            gaps.popleft()
+        n = len(arrivals)
         span = self.window_ns if self.first_ns is None else min(
             self.window_ns, max(now_ns - self.first_ns, 1))
-        rate = len(arr) * 1e9 / span if arr else 0.0
-        gaps = [b - a for a, b in itertools.pairwise(arr)]
-        age = (now_ns - arr[-1]) / 1e9 if arr else math.inf
+        rate = n * 1e9 / span if n else 0.0
+        age = (now_ns - arrivals[-1]) / 1e9 if n else math.inf
         return StreamStats(name, nominal_hz, rate, self.received, missing, age,
-                           max(gaps) / 1e9 if gaps else math.inf)
+                           gaps[0][1] / 1e9 if gaps else math.inf)
 
 
 class _ImuTimeBase:

@@ -251,3 +251,36 @@ def test_that_a_frame_with_its_start_byte_corrupted_counts_as_a_receive_error(
     assert fc.rx_errors > before
     sample = _push(fc, wire, clock, _imu(2), 4.0)
     assert sample is not None and sample.seq == 2
+
+
+def _window_stats_by_brute_force(arrivals: list[int], first_ns: int | None, window_ns: int,
+                                 now_ns: int) -> tuple[float, float, float]:
+    """(rate, age, largest interval) from every arrival of the window, one pass each."""
+    arr = [t for t in arrivals[-8192:] if t >= now_ns - window_ns]
+    span = window_ns if first_ns is None else min(window_ns, max(now_ns - first_ns, 1))
+    gaps = [b - a for a, b in itertools.pairwise(arr)]
+    return (len(arr) * 1e9 / span if arr else 0.0,
+            (now_ns - arr[-1]) / 1e9 if arr else float("inf"),
+            max(gaps) / 1e9 if gaps else float("inf"))
+
+
+@settings(max_examples=300)
+@given(st.lists(st.tuples(st.integers(0, 50_000_000), st.booleans()), max_size=300),
+       st.integers(1_000_000, 200_000_000))
+def test_that_the_rate_meter_keeps_the_largest_interval_of_its_window(
+        steps: list[tuple[int, bool]], window_ns: int) -> None:
+    # Fixture: arrivals at random intervals (repeats included), stats asked now and then
+    from drivers.mikrokopter.device import _RateMeter
+    meter, seen, t, now = _RateMeter(window_ns), [], 0, 0
+    for dt, ask in steps:
+        t += dt
+        meter.add(t)
+        seen.append(t)
+        if ask:
+            # Test (the host clock never runs back)
+            now = max(now, t + dt // 2)
+            got = meter.stats("imu", 500.0, now)
+            # Assert: the same figures as a pass over the whole window
+            rate, age, largest = _window_stats_by_brute_force(seen, seen[0], window_ns, now)
+            assert (got.measured_rate_hz, got.age_s, got.max_interval_s) == \
+                (pytest.approx(rate), pytest.approx(age), pytest.approx(largest))
