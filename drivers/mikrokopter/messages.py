@@ -343,29 +343,35 @@ class Beep:
 HostMessage = Identify | SetStreamPeriod | StartMotors | StopMotors | SpinRates | Throttles | Beep
 
 
+_STREAM_OF_CMD: dict[bytes, Stream] = {s.value: s for s in Stream}
+
+
 def decode_host_message(msg: bytes) -> HostMessage:
     """Decode a deframed host -> board tk3 message (what the emulated board receives)."""
     if not msg:
         raise MalformedMessageError(b"", "empty message")
     cmd, payload = msg[:1], msg[1:]
     n = len(payload)
+    if cmd == b"w":             # first: 500-1000 of these a second
+        if n % 2 or n == 0:
+            raise MalformedMessageError(cmd, f"odd or empty payload of {n} bytes")
+        return SpinRates(struct.unpack(f">{n // 2}h", payload))
     if cmd == b"?":
         return Identify()
-    for stream in Stream:
-        if cmd == stream.value:
-            if n != 4:
-                raise MalformedMessageError(cmd, f"{n + 1} bytes, expected 5")
-            return SetStreamPeriod(stream, SetStreamPeriod.WIRE.unpack(payload)[0])
+    stream = _STREAM_OF_CMD.get(cmd)
+    if stream is not None:
+        if n != 4:
+            raise MalformedMessageError(cmd, f"{n + 1} bytes, expected 5")
+        return SetStreamPeriod(stream, SetStreamPeriod.WIRE.unpack(payload)[0])
     if cmd in (b"g", b"x"):
         if n > 1:
             raise MalformedMessageError(cmd, f"{n + 1} bytes, expected 1 or 2")
         motor = payload[0] if n else None
         return StartMotors(motor) if cmd == b"g" else StopMotors(motor)
-    if cmd in (b"w", b"q"):
+    if cmd == b"q":
         if n % 2 or n == 0:
             raise MalformedMessageError(cmd, f"odd or empty payload of {n} bytes")
-        values = struct.unpack(f">{n // 2}h", payload)
-        return SpinRates(values) if cmd == b"w" else Throttles(values)
+        return Throttles(struct.unpack(f">{n // 2}h", payload))
     if cmd == b"~":
         if n != 2:
             raise MalformedMessageError(cmd, f"{n + 1} bytes, expected 3")
