@@ -654,33 +654,26 @@ def advance(target_t: float, t_filter: float, x: FloatArray, P: FloatArray,
 
 
 @_jit
-def fuse_now(t_c: float, pos: FloatArray, q_m: FloatArray, shift: bool, t_filter: float,
-             x: FloatArray, P: FloatArray, q_ref: FloatArray, R: FloatArray, meas_idx: Any,
-             gate_nis: float, hist_x: FloatArray, hist_P: FloatArray, hist_q: FloatArray,
-             hist_gyro: FloatArray, hij: Any, buf: FloatArray, ij: Any, corr: FloatArray,
-             Wm: FloatArray, Wc: FloatArray, scale: float, min_variance: float,
-             max_pos_variance: float, sig: FloatArray, work: FloatArray, U: FloatArray,
-             x_out: FloatArray, P_out: FloatArray, q_out: FloatArray, y: FloatArray,
-             S: FloatArray, z: FloatArray, pose_out: FloatArray, newest: FloatArray
-             ) -> tuple[int, float]:
-    """``Ukf._fuse_now`` in one call, for a finite filter: the pose moved to the filter's
-    time (``shift``), the gated update, the history entry rewritten and the outputs re-based.
-
-    -> (status, NIS). 0: fused (x, P, q_ref, the history head and the correction updated);
-    1: P not positive definite, nothing written (the caller repairs); 2: refused by the gate
-    or not finite, nothing written. ``pose_out`` = the pose as fused or refused (p, q)."""
-    head = hij[0]
-    dt_s = t_filter - t_c
+def _gated_pose_update(pos: FloatArray, q_m: FloatArray, dt_s: float, gyro: FloatArray,
+                       x: FloatArray, P: FloatArray, q_ref: FloatArray, R: FloatArray,
+                       meas_idx: Any, gate_nis: float, Wm: FloatArray, Wc: FloatArray,
+                       scale: float, min_variance: float, max_pos_variance: float,
+                       sig: FloatArray, work: FloatArray, U: FloatArray, x_out: FloatArray,
+                       P_out: FloatArray, q_out: FloatArray, y: FloatArray, S: FloatArray,
+                       z: FloatArray, pose_out: FloatArray) -> tuple[int, float]:
+    """``Ukf._shift_pose`` by ``dt_s`` (0: none) with the rate ``gyro`` of the state (x, q_ref),
+    then ``Ukf._fuse``: the update of the state into x_out, P_out, q_out and its gate.
+    -> (status, NIS): 0 accepted, 1 P not positive definite, 2 refused by the gate or not
+    finite. ``pose_out`` = the pose as fused or refused (p, q)."""
     for i in range(3):
         pose_out[i] = pos[i]
     for i in range(4):
         pose_out[3 + i] = q_m[i]
-    if shift and abs(dt_s) > 1e-9:        # as Ukf._shift_pose
+    if abs(dt_s) > 1e-9:
         for i in range(3):
             pose_out[i] = pos[i] + dt_s * x[3 + i]
-        _mul_exp_normalized(q_m, dt_s * (hist_gyro[head, 0] - x[9]),
-                            dt_s * (hist_gyro[head, 1] - x[10]),
-                            dt_s * (hist_gyro[head, 2] - x[11]), pose_out[3:7])
+        _mul_exp_normalized(q_m, dt_s * (gyro[0] - x[9]), dt_s * (gyro[1] - x[10]),
+                            dt_s * (gyro[2] - x[11]), pose_out[3:7])
     # z = (p, Log(q_ref^-1 (x) q)), as quaternion.log_relative_single
     w, a, b, c = q_ref[0], q_ref[1], q_ref[2], q_ref[3]
     bw, bx, by, bz = pose_out[3], pose_out[4], pose_out[5], pose_out[6]
@@ -702,6 +695,32 @@ def fuse_now(t_c: float, pos: FloatArray, q_m: FloatArray, shift: bool, t_filter
         return 1, nis
     if st == 2 or not nis <= gate_nis:
         return 2, nis
+    return 0, nis
+
+
+@_jit
+def fuse_now(t_c: float, pos: FloatArray, q_m: FloatArray, shift: bool, t_filter: float,
+             x: FloatArray, P: FloatArray, q_ref: FloatArray, R: FloatArray, meas_idx: Any,
+             gate_nis: float, hist_x: FloatArray, hist_P: FloatArray, hist_q: FloatArray,
+             hist_gyro: FloatArray, hij: Any, buf: FloatArray, ij: Any, corr: FloatArray,
+             Wm: FloatArray, Wc: FloatArray, scale: float, min_variance: float,
+             max_pos_variance: float, sig: FloatArray, work: FloatArray, U: FloatArray,
+             x_out: FloatArray, P_out: FloatArray, q_out: FloatArray, y: FloatArray,
+             S: FloatArray, z: FloatArray, pose_out: FloatArray, newest: FloatArray
+             ) -> tuple[int, float]:
+    """``Ukf._fuse_now`` in one call, for a finite filter: the pose moved to the filter's
+    time (``shift``), the gated update, the history entry rewritten and the outputs re-based.
+
+    -> (status, NIS). 0: fused (x, P, q_ref, the history head and the correction updated);
+    1: P not positive definite, nothing written (the caller repairs); 2: refused by the gate
+    or not finite, nothing written. ``pose_out`` = the pose as fused or refused (p, q)."""
+    head = hij[0]
+    st, nis = _gated_pose_update(pos, q_m, t_filter - t_c if shift else 0.0, hist_gyro[head],
+                                 x, P, q_ref, R, meas_idx, gate_nis, Wm, Wc, scale,
+                                 min_variance, max_pos_variance, sig, work, U, x_out, P_out,
+                                 q_out, y, S, z, pose_out)
+    if st != 0:
+        return st, nis
     # the outputs were built on the filter's state before the update (Ukf._correct_outputs)
     head_q, count = ij[0], ij[1]
     if count > 0:
@@ -755,39 +774,12 @@ def fuse_in_past(t_c: float, pos: FloatArray, q_m: FloatArray, t_filter: float,
     Ps[:, :] = hist_P[j]
     for i in range(4):
         qs[i] = hist_q[j, i]
-    # the pose moved to the sample's time (Ukf._shift_pose)
-    dt_s = hist_t[j] - t_c
-    for i in range(3):
-        pose_out[i] = pos[i]
-    for i in range(4):
-        pose_out[3 + i] = q_m[i]
-    if abs(dt_s) > 1e-9:
-        for i in range(3):
-            pose_out[i] = pos[i] + dt_s * xs[3 + i]
-        _mul_exp_normalized(q_m, dt_s * (hist_gyro[j, 0] - xs[9]),
-                            dt_s * (hist_gyro[j, 1] - xs[10]),
-                            dt_s * (hist_gyro[j, 2] - xs[11]), pose_out[3:7])
-    # z = (p, Log(q_ref^-1 (x) q)), as quaternion.log_relative_single
-    w, a, b, c = qs[0], qs[1], qs[2], qs[3]
-    bw, bx, by, bz = pose_out[3], pose_out[4], pose_out[5], pose_out[6]
-    rw = w * bw + a * bx + b * by + c * bz
-    rx = w * bx - a * bw - b * bz + c * by
-    ry = w * by + a * bz - b * bw - c * bx
-    rz = w * bz - a * by + b * bx - c * bw
-    s = math.sqrt(rx * rx + ry * ry + rz * rz)
-    for i in range(3):
-        z[i] = pose_out[i]
-    if s == 0.0:
-        z[3] = z[4] = z[5] = 0.0
-    else:
-        f = 2.0 * math.atan2(s, abs(rw)) / s * (1.0 if rw >= 0.0 else -1.0)
-        z[3], z[4], z[5] = rx * f, ry * f, rz * f
-    st, nis = update_step(xs, Ps, qs, z, R, meas_idx, Wm, Wc, scale, min_variance,
-                          max_pos_variance, sig, work, U, x_out, P_out, q_out, y, S)
-    if st == 1:
-        return 1, nis
-    if st == 2 or not nis <= gate_nis:
-        return 2, nis
+    st, nis = _gated_pose_update(pos, q_m, hist_t[j] - t_c, hist_gyro[j], xs, Ps, qs, R,
+                                 meas_idx, gate_nis, Wm, Wc, scale, min_variance,
+                                 max_pos_variance, sig, work, U, x_out, P_out, q_out, y, S, z,
+                                 pose_out)
+    if st != 0:
+        return st, nis
     for m in range(k + 1):                  # the entries the replay rewrites, j .. head
         i = (j + m) % n
         bak_x[m, :] = hist_x[i]

@@ -544,10 +544,7 @@ class Ukf:
         assert step is not None
         cfg = self.cfg
         pending = self._pending
-        # C-contiguous float64 state: the compiled signature (a new layout would compile)
-        self._x = x = np.ascontiguousarray(self._x)
-        self._P = P = np.ascontiguousarray(self._P)
-        self._q_ref = q = np.ascontiguousarray(self._q_ref)
+        x, P, q = self._contiguous_state()
         status, self._t_s = step.horizon_predict(
             t, dt, inp, t - self._delay_s, direct, self._t_s, x, P, q, pending.buf,
             pending.ij, pending.corr, cfg.gravity_m_s2, self._hist_t, self._hist_x,
@@ -739,9 +736,7 @@ class Ukf:
                 and pending.oldest_t_s() <= t_target_s + _TIME_EPS_S:
             # the sequence below in one compiled call; a repair or a non-finite step is left
             # to it, from the input where the compiled loop stopped
-            self._x = x = np.ascontiguousarray(self._x)
-            self._P = P = np.ascontiguousarray(self._P)
-            self._q_ref = q_arr = np.ascontiguousarray(self._q_ref)
+            x, P, q_arr = self._contiguous_state()
             cfg = self.cfg
             status, self._t_s = step.advance(
                 t_target_s, self._t_s, x, P, q_arr, pending.buf, pending.ij, pending.corr,
@@ -792,9 +787,7 @@ class Ukf:
         if step is not None and not self._nonfinite:     # the sequence below, compiled
             cfg = self.cfg
             pending = self._pending
-            self._x = x = np.ascontiguousarray(self._x)
-            self._P = P = np.ascontiguousarray(self._P)
-            self._q_ref = q = np.ascontiguousarray(self._q_ref)
+            x, P, q = self._contiguous_state()
             out = self._pose_out
             status, nis = step.fuse_now(
                 t_c, pos, q_m, shift, self._t_s, x, P, q, self._R, cfg.gate_nis, self._hist_x,
@@ -802,12 +795,7 @@ class Ukf:
                 pending.ij, pending.corr, cfg.min_variance, cfg.max_pos_sigma_m ** 2, out,
                 self._newest_out)
             if status != 1:         # 1: P not positive definite, the path below repairs it
-                self._last_nis = nis
-                if status == 2:
-                    return self._rejected_pose(out[0:3].copy(), out[3:7].copy())
-                if pending:
-                    pending.set_newest(self._newest_out)
-                return self._accepted_pose(t_c)
+                return self._compiled_pose_verdict(status, nis, t_c)
         p_r, v_r, q_r = self._x[POS].tolist(), self._x[VEL].tolist(), self._q_ref.tolist()
         if shift:
             pos, q_m = self._shift_pose(pos, q_m, self._t_s - t_c, self._x, self._hist_head)
@@ -927,9 +915,7 @@ class Ukf:
         if step is not None and not self._nonfinite:     # the sequence below, compiled
             cfg = self.cfg
             pending = self._pending
-            self._x = x = np.ascontiguousarray(self._x)
-            self._P = P = np.ascontiguousarray(self._P)
-            self._q_ref = q = np.ascontiguousarray(self._q_ref)
+            x, P, q = self._contiguous_state()
             out = self._pose_out
             status, nis = step.fuse_in_past(
                 t_c, pos, q_m, self._t_s, x, P, q, self._R, cfg.gate_nis, self._hist_t,
@@ -940,12 +926,7 @@ class Ukf:
                 self._too_old += 1
                 return PoseVerdict.TOO_OLD
             if status != 1:     # 1: a repair or a non-finite step, the path below takes it
-                self._last_nis = nis
-                if status == 2:
-                    return self._rejected_pose(out[0:3].copy(), out[3:7].copy())
-                if pending:
-                    pending.set_newest(self._newest_out)
-                return self._accepted_pose(t_c)
+                return self._compiled_pose_verdict(status, nis, t_c)
         n_hist = len(self._hist_t)
         k = 0
         while k < self._hist_len and self._hist_t[(self._hist_head - k) % n_hist] > t_c:
@@ -988,6 +969,25 @@ class Ukf:
             return pos, q_m
         omega_b = self._hist_gyro[j] - x[GYRO_BIAS]
         return pos + dt_s * x[VEL], mul_exp_single(q_m, dt_s * omega_b)
+
+    def _contiguous_state(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """x, P and q_ref as C-contiguous arrays, kept as the state (the compiled calls'
+        signature: another layout would compile a new one)."""
+        self._x = np.ascontiguousarray(self._x)
+        self._P = np.ascontiguousarray(self._P)
+        self._q_ref = np.ascontiguousarray(self._q_ref)
+        return self._x, self._P, self._q_ref
+
+    def _compiled_pose_verdict(self, status: int, nis: float, t_c: float) -> PoseVerdict:
+        """The verdict of a compiled fusion that finished (0 fused, 2 refused; the refused
+        pose is in ``_pose_out``), with the outputs' newest entry taken from it."""
+        self._last_nis = nis
+        if status == 2:
+            out = self._pose_out
+            return self._rejected_pose(out[0:3].copy(), out[3:7].copy())
+        if self._pending:
+            self._pending.set_newest(self._newest_out)
+        return self._accepted_pose(t_c)
 
     def _accepted_pose(self, t_c: float) -> PoseVerdict:
         self._accepted += 1
