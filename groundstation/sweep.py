@@ -264,6 +264,7 @@ class DaskRunner:
         # tracebacks: a sweep shows its own progress, and Dask's warnings only with -v
         self._log_levels = _dask_log_levels(logging.ERROR if scheduler == "local"
                                             else logging.WARNING)
+        logging.getLogger("tornado.application").addFilter(_INTERRUPTED_SYNC_FILTER)
         try:
             if scheduler == "local":
                 # the worker processes start with the stop signals held and never unblock
@@ -320,6 +321,29 @@ class DaskRunner:
             _restore_log_levels(during_close)
             _restore_log_levels(self._log_levels)
             self._log_levels = {}
+            logging.getLogger("tornado.application").removeFilter(_INTERRUPTED_SYNC_FILTER)
+
+
+class _InterruptedSyncFilter(logging.Filter):
+    """Drops the one traceback distributed's ``sync`` logs when Ctrl-C lands before its
+    future exists: the ``cancel`` callback it schedules on the client's loop then reads an
+    unassigned closure variable (``NameError`` in ``distributed/utils.py``), which tornado
+    logs as "Exception in callback". The interrupt itself is handled by the sweep; every
+    other record passes."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        exc = record.exc_info[1] if record.exc_info else None
+        if not isinstance(exc, NameError) or exc.__traceback__ is None:
+            return True
+        tb = exc.__traceback__
+        while tb.tb_next is not None:
+            tb = tb.tb_next
+        code = tb.tb_frame.f_code
+        return not (code.co_name == "cancel"
+                    and code.co_filename.replace("\\", "/").endswith("distributed/utils.py"))
+
+
+_INTERRUPTED_SYNC_FILTER = _InterruptedSyncFilter()
 
 
 def _dask_log_levels(level: int) -> dict[str, int]:
