@@ -29,6 +29,7 @@ def test_that_the_imu_streams_at_the_rate_asked_with_valid_samples(
     # Fixture
     with FlightCtrl.open(flight_ctrl_uri, FlightCtrlConfig(imu_rate_hz=IMU_RATE_HZ)) as fc:
         fc.connect()
+        before = fc.link_stats()
         samples = []
         t0 = time.monotonic()
         while time.monotonic() - t0 < 2.0:  # 2 s of samples, ~1000
@@ -36,10 +37,18 @@ def test_that_the_imu_streams_at_the_rate_asked_with_valid_samples(
             if s is not None:
                 samples.append(s)
         stats = fc.link_stats()
-    # Assert: the rate within what the link check tolerates (80 %), a bench at rest
-    assert len(samples) > 0.8 * 2.0 * IMU_RATE_HZ * 0.9  # ~0.9: samples overwritten by a slow
+    # Assert: the board streamed at the rate asked, within what the link check tolerates
+    # (80 %). Counted where the driver decodes the frames, not where this thread took them: on a
+    # loaded host the test thread is late and the mailbox keeps only the newest sample.
+    received = stats.imu.received - before.imu.received
+    assert received > 0.8 * 2.0 * IMU_RATE_HZ
     assert stats.imu.measured_rate_hz >= 0.8 * IMU_RATE_HZ
     assert stats.imu.measured_rate_hz <= 1.05 * IMU_RATE_HZ
+    # nothing unaccounted for: every sample decoded was taken or overwritten (one may still wait
+    # in the mailbox, one taken at the window's edge may have been decoded before it)
+    overwritten = stats.imu_overwritten - before.imu_overwritten
+    assert abs(received - (len(samples) + overwritten)) <= 2
+    assert len(samples) >= 100  # enough to check the values below
     for s in samples:
         a, w = s.accel_m_s2, s.gyro_rad_s
         assert all(math.isfinite(v) for v in (*a, *w))
