@@ -64,16 +64,14 @@ def lockstep() -> Iterator[list[NatNetServer]]:
 
 
 def _start(server: NatNetServer, cfg: NatNetEmulatorConfig, started: list[NatNetServer],
-           sim_clock: bool = False, **client: object) -> NatNetClient:
+           **client: object) -> NatNetClient:
     server.start(realtime=False)
     started.append(server)
     ccfg = NatNetConfig(command_port=server.command_port, data_port=cfg.data_port,
                         mode=cfg.mode, body="fasthex", **client)  # type: ignore[arg-type]
-    if not sim_clock:
-        return NatNetClient(ccfg)
     vehicle = server._vehicle
     # arrivals stamped on the simulated clock, as a lockstep flight stamps them: on the host's
-    # clock a step that stalls longer than its 5 ms of simulated time makes a frame look late
+    # clock a step that stalls longer than its simulated time makes a frame look late
     return NatNetClient(ccfg, clock=lambda: round(vehicle.now_s() * 1e9))
 
 
@@ -94,7 +92,7 @@ def test_that_our_client_reads_the_true_pose_in_every_version_and_mode(
     vehicle = server._vehicle
     assert isinstance(vehicle, BenchVehicle)
     truth: dict[int, PoseReading] = {}
-    with _start(server, cfg, lockstep, sim_clock=True) as client:
+    with _start(server, cfg, lockstep) as client:
         assert client.version == natnet.parse_version(version)
         server.publish_due(vehicle.now_s())  # frame 1 captured, sent after the latency
         truth[1] = vehicle.true_pose()
