@@ -37,6 +37,10 @@ def test_that_the_imu_streams_at_the_rate_asked_with_valid_samples(
             if s is not None:
                 samples.append(s)
         stats = fc.link_stats()
+        # one more take settles the overwritten count of what arrived up to ``stats``
+        last = fc.wait_next(0.0)
+        taken = len(samples) + (last is not None)
+        overwritten = fc.link_stats().imu_overwritten - before.imu_overwritten
     # Assert: the board streamed at the rate asked, within what the link check tolerates
     # (80 %). Counted where the driver decodes the frames, not where this thread took them: on a
     # loaded host the test thread is late and the mailbox keeps only the newest sample.
@@ -44,10 +48,9 @@ def test_that_the_imu_streams_at_the_rate_asked_with_valid_samples(
     assert received > 0.8 * 2.0 * IMU_RATE_HZ
     assert stats.imu.measured_rate_hz >= 0.8 * IMU_RATE_HZ
     assert stats.imu.measured_rate_hz <= 1.05 * IMU_RATE_HZ
-    # nothing unaccounted for: every sample decoded was taken or overwritten (one may still wait
-    # in the mailbox, one taken at the window's edge may have been decoded before it)
-    overwritten = stats.imu_overwritten - before.imu_overwritten
-    assert abs(received - (len(samples) + overwritten)) <= 2
+    # nothing lost: every sample decoded was taken or counted overwritten (more may have
+    # arrived after ``stats``, so the count can only exceed what was received)
+    assert taken + overwritten >= received
     assert len(samples) >= 100  # enough to check the values below
     for s in samples:
         a, w = s.accel_m_s2, s.gyro_rad_s
