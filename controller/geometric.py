@@ -42,6 +42,7 @@ from controller.compiled import jit, jitable
 from controller.model import LateralBound, VehicleModel
 from controller.params import VehicleParams
 from controller.reference import Mat3, Reference, Vec3, VehicleState, quat_to_rot
+from controller.values import tick_value
 from controller.wrench import WrenchMapper
 
 Six = tuple[float, float, float, float, float, float]
@@ -65,7 +66,7 @@ class ControllerMemory:
     last_t_s: float | None = None
 
 
-@dataclass(frozen=True, slots=True)
+@tick_value
 class Command:
     """The output of one controller tick, with the intermediate quantities worth plotting."""
 

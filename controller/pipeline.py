@@ -20,12 +20,13 @@ from controller.model import LateralBound, VehicleModel
 from controller.params import VehicleParams
 from controller.reference import Quat, Reference, Vec3, VehicleState
 from controller.tilt_planner import TiltPlanner
+from controller.values import tick_value
 
 #: how often the auto tilt mode re-evaluates the look-ahead lateral demand (s)
 AUTO_UPDATE_PERIOD_S = 0.1
 
 
-@dataclass(frozen=True, slots=True)
+@tick_value
 class ControlTick:
     """Everything one tick decided, for the actuators and the flight record."""
 

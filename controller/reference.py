@@ -13,9 +13,9 @@ body axes b1, b2, b3 expressed in the world frame.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 from controller.compiled import jitable
+from controller.values import tick_value
 
 Vec3 = tuple[float, float, float]
 Quat = tuple[float, float, float, float]
@@ -26,7 +26,7 @@ IDENTITY_R: Mat3 = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 ZERO3: Vec3 = (0.0, 0.0, 0.0)
 
 
-@dataclass(frozen=True, slots=True)
+@tick_value
 class VehicleState:
     """The (estimated or true) state the controller acts on."""
 
@@ -36,7 +36,7 @@ class VehicleState:
     omega_b_rad_s: Vec3
 
 
-@dataclass(frozen=True, slots=True)
+@tick_value
 class Reference:
     """The full-pose reference at one instant, from a mission.
 

@@ -50,7 +50,7 @@ class WrenchMapper:
         self.k2_rad = c.tikhonov_k2_rad
         self.alpha_tolerance_rad = alpha_tolerance_rad
         self._alpha = math.nan
-        self._rows: tuple[tuple[float, ...], ...] = ()
+        self._rows: tuple[tuple[float, ...], ...] | None = None  # of _array, on demand
         #: number of times the 6x6 map was (re)computed (the cache's effect, for tests)
         self.recomputations = 0
         # the compiled map computes VehicleModel.allocation's geometry itself
@@ -72,8 +72,7 @@ class WrenchMapper:
 
     def matrix(self, alpha_rad: float) -> FloatArray:
         """The 6x6 map at ``alpha_rad`` (from the cache when close enough)."""
-        self._ensure(alpha_rad)
-        return np.array(self._rows)
+        return np.array(self.rows(alpha_rad))
 
     def _ensure(self, alpha_rad: float) -> None:
         if not abs(alpha_rad - self._alpha) <= self.alpha_tolerance_rad:
@@ -85,7 +84,7 @@ class WrenchMapper:
             else:
                 m = tikhonov_map(self.model.allocation(alpha_rad), gamma)
             self._array = m
-            self._rows = tuple(tuple(row) for row in m.tolist())
+            self._rows = None  # the compiled controller reads the array only
             self._alpha = alpha_rad
             self.recomputations += 1
 
@@ -93,6 +92,8 @@ class WrenchMapper:
         """The map at ``alpha_rad`` as six rows of Python floats (from the cache when close
         enough)."""
         self._ensure(alpha_rad)
+        if self._rows is None:
+            self._rows = tuple(tuple(row) for row in self._array.tolist())
         return self._rows
 
     def rows_array(self, alpha_rad: float) -> FloatArray:
@@ -104,8 +105,7 @@ class WrenchMapper:
     def thrusts_n(self, alpha_rad: float, u_f_b_n: tuple[float, float, float],
                   u_tau_b_n_m: tuple[float, float, float]) -> list[float]:
         """Six thrusts (N, possibly outside the rotor limits) for the body wrench."""
-        self._ensure(alpha_rad)
         fx, fy, fz = u_f_b_n
         tx, ty, tz = u_tau_b_n_m
         return [r[0] * fx + r[1] * fy + r[2] * fz + r[3] * tx + r[4] * ty + r[5] * tz
-                for r in self._rows]
+                for r in self.rows(alpha_rad)]

@@ -25,6 +25,8 @@ import enum
 from dataclasses import dataclass, field
 from typing import Literal
 
+from controller.values import tick_value
+
 
 class FlightState(enum.IntEnum):
     """Numbered so the state fits a telemetry column and a MAVLink custom mode."""
@@ -55,7 +57,7 @@ class ReferenceSource(enum.IntEnum):
     LAND_HERE = 2  # failsafe landing from the current estimate
 
 
-@dataclass(frozen=True, slots=True)
+@tick_value
 class HealthSnapshot:
     """What the loop measured this tick. Ages in seconds on the loop's clock."""
 
@@ -109,7 +111,7 @@ class Transition:
     reason: str
 
 
-@dataclass(frozen=True, slots=True)
+@tick_value
 class Directive:
     """What the loop does this tick."""
 

@@ -154,12 +154,14 @@ class TruthPlusNoise:
         p, v, w = s.pos_w_m, s.vel_w_m_s, s.omega_b_rad_s
         q: Quat = s.q_wb
         if sa > 0.0:  # the attitude noise first, then position, velocity and rate
-            rx, ry, rz = self._n.take(3)
-            rx, ry, rz = sa * rx, sa * ry, sa * rz
+            n = self._n.take(12)
+            rx, ry, rz = sa * n[0], sa * n[1], sa * n[2]
+            del n[:3]
             ang = math.sqrt(rx * rx + ry * ry + rz * rz)
             if ang > 0.0:
                 q = quat_mul(q, quat_from_axis_angle((rx / ang, ry / ang, rz / ang), ang))
-        n = self._n.take(9)
+        else:
+            n = self._n.take(9)
         return VehicleState((p[0] + sp * n[0], p[1] + sp * n[1], p[2] + sp * n[2]),
                             (v[0] + sv * n[3], v[1] + sv * n[4], v[2] + sv * n[5]), q,
                             (w[0] + sw * n[6], w[1] + sw * n[7], w[2] + sw * n[8]))

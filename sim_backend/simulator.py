@@ -222,6 +222,7 @@ class FastHexSimulator:
         self._r = r
         self._x = r[phy.S_X:phy.S_X + 13]
         self._t = r[phy.S_T]
+        self._state: VehicleState | None = None  # built on first use (state())
 
     def warm_up(self) -> None:
         """Compile the physics (or load it from numba's on-disk cache) now, on a copy of the
@@ -307,7 +308,13 @@ class FastHexSimulator:
     # -- fast in-process API -----------------------------------------------------------------
     def state(self) -> VehicleState:
         """The true state of O_B (with a centre-of-mass offset: moved from the centre of
-        mass's, v_B = v_C - R (w x c))."""
+        mass's, v_B = v_C - R (w x c)). Built once per step: the state source and the record
+        both read it."""
+        if self._state is None:
+            self._state = self._build_state()
+        return self._state
+
+    def _build_state(self) -> VehicleState:
         x = self._x
         if not self._has_com:
             return VehicleState((x[0], x[1], x[2]), (x[3], x[4], x[5]),

@@ -18,17 +18,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+
+from controller.values import tick_value
 
 GRAVITY_M_S2 = 9.81
 
 Vec3 = tuple[float, float, float]
 
 
-@dataclass(frozen=True, slots=True)
+@tick_value
 class ImuReading:
     """One IMU sample from the sensor model, body frame."""
 
@@ -37,7 +38,7 @@ class ImuReading:
     accel_m_s2: Vec3
 
 
-@dataclass(frozen=True, slots=True)
+@tick_value
 class PoseReading:
     """The vehicle's pose at ``t_s`` (true pose; MoCap emulators add their own noise)."""
 
