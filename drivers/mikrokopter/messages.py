@@ -460,10 +460,21 @@ class MotorMessage:
                    bool(state & cls.STARTING), period, throttle, current_ma * 1e-3)
 
     def encode(self) -> bytes:
-        state = (self.motor_id & 0x0F) | (self.EMERGENCY if self.emergency else 0) \
-            | (self.SPINNING if self.spinning else 0) | (self.STARTING if self.starting else 0)
-        return self.CMD + self.WIRE.pack(self.seq & 0xFF, state, self.half_period_us,
-                                         self.throttle_raw, _u16(self.current_a * 1e3))
+        return encode_motor_state(self.seq, self.motor_id, self.emergency, self.spinning,
+                                  self.starting, self.half_period_us, self.throttle_raw,
+                                  self.current_a)
+
+
+def encode_motor_state(seq: int, motor_id: int, emergency: bool, spinning: bool,
+                       starting: bool, half_period_us: int, throttle_raw: int,
+                       current_a: float) -> bytes:
+    """The ``M`` message (unframed) of :class:`MotorMessage`'s fields, without building one
+    (an emulated board sends six every motor period)."""
+    m = MotorMessage
+    state = (motor_id & 0x0F) | (m.EMERGENCY if emergency else 0) \
+        | (m.SPINNING if spinning else 0) | (m.STARTING if starting else 0)
+    return m.CMD + m.WIRE.pack(seq & 0xFF, state, half_period_us, throttle_raw,
+                               _u16(current_a * 1e3))
 
 
 @dataclass(frozen=True, slots=True)

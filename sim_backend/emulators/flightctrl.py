@@ -245,6 +245,10 @@ class EmulatedFlightCtrl:
         self._wall0 = 0.0
         self._sim0_ns = 0
         self._tx_queue: deque[tuple[float, bytes]] = deque()
+        self._out = bytearray()  # frames sent this iteration, not yet written
+        # the config's times in ns, once (the step reads them several times per `w`)
+        self._motor_start_ns = round(self.config.motor_start_s * _NS)
+        self._watchdog_ns = round(self.config.watchdog_s * _NS)
         self._tx_busy_until = 0.0
         self._rotor_cmd: tuple[float, ...] = ()
 
@@ -305,6 +309,7 @@ class EmulatedFlightCtrl:
         """Handle bytes as if they had come in on the pty (same thread rules: call it only
         while the emulator thread is not running). Never raises for any content."""
         self._handle_input(data)
+        self._flush_out()
 
     def stream_periods_us(self) -> dict[str, int]:
         """The active stream periods by message letter (``I M B C`` tk3, ``D 3D`` stock), µs."""
@@ -360,6 +365,7 @@ class EmulatedFlightCtrl:
             self._count("freerun_entries")
         if self._freerun:
             self._advance_to(self._sim0_ns + round((time.monotonic() - self._wall0) * _NS))
+        self._flush_out()
         self._flush_tx(time.monotonic())
         cut = self.config.faults.disconnect_after_s
         if cut is not None and self._sim_ns - self._start_ns >= round(cut * _NS):
@@ -499,16 +505,24 @@ class EmulatedFlightCtrl:
             self._due_ns[key] = self._sim_ns
 
     def _next_event_ns(self) -> int | None:
-        events = list(self._due_ns.values())
+        """The next stream sample, motor start-up end or watchdog trip (simulated ns)."""
+        nxt = min(self._due_ns.values()) if self._due_ns else None
+        running = False
         for m in self._motors:
-            if m.state == _MotorState.STARTING:
-                events.append(m.start_ns + round(self.config.motor_start_s * _NS))
-        if self._any_running():
-            events.append(self._last_w_ns + round(self.config.watchdog_s * _NS) + 1)
-        return min(events) if events else None
+            state = m.state
+            if state is _MotorState.OFF:
+                continue
+            running = True
+            if state is _MotorState.STARTING:
+                ev = m.start_ns + self._motor_start_ns
+                nxt = ev if nxt is None or ev < nxt else nxt
+        if running:
+            ev = self._last_w_ns + self._watchdog_ns + 1
+            nxt = ev if nxt is None or ev < nxt else nxt
+        return nxt
 
     def _any_running(self) -> bool:
-        return any(m.state != _MotorState.OFF for m in self._motors)
+        return any(m.state is not _MotorState.OFF for m in self._motors)
 
     def _advance_to(self, target_ns: int) -> None:
         """Step the vehicle to ``target_ns``, handling every event on the way in time order."""
@@ -528,12 +542,12 @@ class EmulatedFlightCtrl:
     def _update_motors(self) -> None:
         changed = False
         t = self._sim_ns
-        start_ns = round(self.config.motor_start_s * _NS)
+        start_ns = self._motor_start_ns
         for m in self._motors:
-            if m.state == _MotorState.STARTING and t >= m.start_ns + start_ns:
+            if m.state is _MotorState.STARTING and t >= m.start_ns + start_ns:
                 m.state = _MotorState.SPINNING
                 changed = True
-        if self._any_running() and t > self._last_w_ns + round(self.config.watchdog_s * _NS):
+        if t > self._last_w_ns + self._watchdog_ns and self._any_running():
             # tk3: the BL firmware stops and flags emergency. Stock: the engine-test set-points
             # simply fall back to 0 when not renewed (PC_MotortestActive runs out).
             emergency = self.config.firmware == "tk3"
@@ -601,18 +615,20 @@ class EmulatedFlightCtrl:
         with self._lock:
             reading = self._vehicle.read_imu()
         accel, gyro = self.config.imu_axes.imu_to_board(reading.accel_m_s2, reading.gyro_rad_s)
-        msg = mkm.ImuMessage(self._imu_total & 0xFF, accel, gyro)
-        encoded = msg.encode()
-        msg = mkm.ImuMessage.decode(encoded[1:])  # what the board really sends: quantised
+        encoded = mkm.ImuMessage(self._imu_total & 0xFF, accel, gyro).encode()
         total, t_ns = self._imu_total, self._sim_ns
+        record = None
+        if self.config.record_truth:
+            # what the board really sends: quantised
+            msg = mkm.ImuMessage.decode(encoded[1:])
 
-        def record(altered: bool, wire: bytes) -> None:
-            self.sent_imu.append(SentImu(total, t_ns, msg, altered, wire))
+            def record(altered: bool, wire: bytes) -> None:
+                self.sent_imu.append(SentImu(total, t_ns, msg, altered, wire))
 
         frame = framing_tk3.encode_frame(encoded)
         if self.imu_wire_fault is not None and self.imu_wire_fault(total, t_ns / _NS):
             frame = frame[:-1] + b"!"  # aborted on the wire: the host sees a framing error
-        self._send(frame, record if self.config.record_truth else None)
+        self._send(frame, record)
         self._imu_total += 1
         self._count("imu_sent")
 
@@ -628,10 +644,9 @@ class EmulatedFlightCtrl:
             period = mkm.spin_hz_to_half_period(direction * speed) if speed > 0.0 else 0
             throttle = round(min(1.0, speed / _MAX_SPEED_HZ_FOR_THROTTLE) * 1023)
             current = currents[i] if i < len(currents) else 0.0
-            self._send_tk3(mkm.MotorMessage(seq, i + 1, m.emergency, spinning,
-                                            m.state == _MotorState.STARTING, period,
-                                            throttle if m.state != _MotorState.OFF else 0,
-                                            current))
+            self._send(framing_tk3.encode_frame(mkm.encode_motor_state(
+                seq, i + 1, m.emergency, spinning, m.state == _MotorState.STARTING, period,
+                throttle if m.state != _MotorState.OFF else 0, current)))
 
     def _mag_board_t(self) -> tuple[float, float, float]:
         with self._lock:
@@ -722,7 +737,7 @@ class EmulatedFlightCtrl:
         if faults.baud is None:
             if record is not None:
                 record(altered, frame)
-            self._write(frame)
+            self._out += frame  # written at the end of the iteration (_flush_out)
             return
         now = time.monotonic()
         start = max(now, self._tx_busy_until)
@@ -753,6 +768,13 @@ class EmulatedFlightCtrl:
                 altered = True
             out.append(byte)
         return bytes(out), altered
+
+    def _flush_out(self) -> None:
+        """Write what this iteration sent, in one system call (a pty write costs ~6 us: a
+        step that emits an IMU sample and six motor frames would pay seven)."""
+        if self._out:
+            data, self._out = bytes(self._out), bytearray()
+            self._write(data)
 
     def _flush_tx(self, now: float) -> None:
         while self._tx_queue and self._tx_queue[0][0] <= now:
