@@ -115,15 +115,21 @@ def tick_breakdown(n: int = 4000) -> dict[str, float]:
     return {k: float(np.median(v[200:])) / 1e3 for k, v in parts.items()}
 
 
-def simulate_speed(estimator: str, duration_s: float | None) -> float:
+def simulate_speed(estimator: str, duration_s: float | None, runs: int = 3) -> float:
     """``fasthex simulate`` as a user runs it: sim s per wall s of the flight (start-up
-    excluded, as the command reports it)."""
+    excluded, as the command reports it); the median of ``runs`` runs (one run swings by
+    +-20 % with the host's other load)."""
     cmd = [sys.executable, "-m", "groundstation", "simulate", EXP1, "--estimator", estimator,
            "--json"]
     if duration_s is not None:
         cmd += ["--duration", str(duration_s)]
-    out = subprocess.run(cmd, capture_output=True, text=True, check=True, cwd=ROOT)
-    return float(json.loads(out.stdout)["sim_s_per_wall_s"])
+    speeds = []
+    for _ in range(runs):
+        out = subprocess.run(cmd, capture_output=True, text=True, check=True, cwd=ROOT)
+        speeds.append(float(json.loads(out.stdout)["sim_s_per_wall_s"]))
+    print(f"simulate --estimator {estimator}: {', '.join(f'{x:.1f}' for x in speeds)}x "
+          f"real time (median of {runs})", flush=True)
+    return float(np.median(speeds))
 
 
 #: the shipped sessions the flights of this table fly (their clock overridden)
