@@ -272,8 +272,11 @@ def test_that_mavsdk_without_a_key_is_denied_a_land_and_then_sees_the_vehicle_di
     from mavsdk.plugins.action import Action, ActionError, ActionResult
     from mavsdk.plugins.telemetry import LandedState, Odometry, Telemetry
 
-    # Fixture: MAVSDK as the GCS, listening; no key anywhere; the shared 11 s mission
-    session = write_session(tmp_path, hover_s=4.0, name="mavsdk-flight")
+    # Fixture: MAVSDK as the GCS, listening; no key anywhere; the shared mission with a 30 s
+    # hover. The flight is lockstep (as fast as the host runs it) and MAVSDK reports the system
+    # only after its own handshake: a 4 s hover (1.2 s of wall time at 3.4x) was over before
+    # MAVSDK had subscribed, and it first heard LANDING. 30 s leave ~9 s of wall time in air.
+    session = write_session(tmp_path, hover_s=30.0, name="mavsdk-flight")
     port = free_udp_port()
     sdk = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
     sdk.add_any_connection(f"udpin://127.0.0.1:{port}")
