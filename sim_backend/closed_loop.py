@@ -154,9 +154,8 @@ class TruthPlusNoise:
         p, v, w = s.pos_w_m, s.vel_w_m_s, s.omega_b_rad_s
         q: Quat = s.q_wb
         if sa > 0.0:  # the attitude noise first, then position, velocity and rate
-            n = self._n.take(12)
-            rx, ry, rz = sa * n[0], sa * n[1], sa * n[2]
-            del n[:3]
+            ax, ay, az, *n = self._n.take(12)  # one draw: the same sequence as 3 then 9
+            rx, ry, rz = sa * ax, sa * ay, sa * az
             ang = math.sqrt(rx * rx + ry * ry + rz * rz)
             if ang > 0.0:
                 q = quat_mul(q, quat_from_axis_angle((rx / ang, ry / ang, rz / ang), ang))
