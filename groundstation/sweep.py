@@ -20,7 +20,8 @@ whose verdict is ``error``), ``fasthex_version`` and ``wall_time_s``. The schema
 ``fasthex.sweep`` (JSON) lists the campaign, its parameters and the metric columns.
 
 Rows stream to ``TABLE.parts/`` as small Parquet files, written atomically at most every
-:data:`FLUSH_INTERVAL_S`; the table itself is rewritten from them when the sweep ends, is
+``flush_interval_s`` (default :data:`FLUSH_INTERVAL_S`; ``0`` writes each row as it arrives);
+the table itself is rewritten from them when the sweep ends, is
 interrupted (Ctrl-C, SIGTERM) or is started again. A sweep killed outright loses at most the
 rows of the last interval; a rerun of the same campaign flies only the runs whose ``run_id``
 is not in the table yet (``--retry-errors`` flies the ``error`` rows again; a crash is a
@@ -459,8 +460,12 @@ def read_metadata(path: Path) -> dict[str, Any]:
 class ResultsTable:
     """The sweep's Parquet table and its journal of parts (module docstring)."""
 
-    def __init__(self, path: Path, meta: dict[str, Any]) -> None:
+    def __init__(self, path: Path, meta: dict[str, Any], *,
+                 flush_interval_s: float = FLUSH_INTERVAL_S) -> None:
+        if not flush_interval_s >= 0.0:  # also refuses NaN
+            raise ValueError(f"flush interval must be >= 0 s, got {flush_interval_s}")
         self.path = path
+        self.flush_interval_s = flush_interval_s
         self.parts_dir = path.with_name(path.name + ".parts")
         self.meta = meta
         self._buffer: list[dict[str, Any]] = []
@@ -482,7 +487,7 @@ class ResultsTable:
     def add(self, row: dict[str, Any]) -> None:
         self.rows[str(row["run_id"])] = row
         self._buffer.append(row)
-        if time.monotonic() - self._last_flush >= FLUSH_INTERVAL_S:
+        if time.monotonic() - self._last_flush >= self.flush_interval_s:
             self.flush()
 
     def flush(self) -> None:

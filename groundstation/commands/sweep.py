@@ -45,6 +45,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--retry-errors", action="store_true",
                         help="fly again the runs whose row is an error (a crash is a result "
                         "and is kept)")
+    parser.add_argument("--flush-s", type=float, default=None, metavar="SECONDS",
+                        help="how often finished rows are journaled to TABLE.parts/ (default "
+                        "2; 0 writes each row as it arrives): a sweep killed outright loses at "
+                        "most this much work")
     parser.add_argument("--dry-run", action="store_true",
                         help="list the runs (and which are already in the table), fly nothing")
     parser.add_argument("--metric", action="append", default=None, metavar="KEY",
@@ -67,17 +71,27 @@ def _sweep(args: argparse.Namespace) -> int:
     from groundstation.campaign import load_campaign
     from groundstation.cli import UserError, version
     from groundstation.signals import stop_signals_blocked
-    from groundstation.sweep import Progress, ResultsTable, Runner, make_runner, sweep
+    from groundstation.sweep import (
+        FLUSH_INTERVAL_S,
+        Progress,
+        ResultsTable,
+        Runner,
+        make_runner,
+        sweep,
+    )
 
     if args.workers is not None and args.workers < 1:
         raise UserError(f"--workers must be at least 1, got {args.workers}")
+    if args.flush_s is not None and not (0.0 <= args.flush_s <= 3600.0):
+        raise UserError(f"--flush-s must be between 0 and 3600 seconds, got {args.flush_s}")
     campaign = load_campaign(find_config("campaigns", args.campaign))
     runs = list(campaign.runs())
     table_path = Path(args.out) if args.out else Path(f"{campaign.name}.parquet")
     meta = {"campaign": campaign.name, "campaign_sha256": campaign.text_sha256,
             "parameters": campaign.parameter_names(), "fasthex_version": version()}
     try:
-        table = ResultsTable(table_path, meta)
+        table = ResultsTable(table_path, meta, flush_interval_s=(
+            FLUSH_INTERVAL_S if args.flush_s is None else args.flush_s))
     except Exception as exc:  # not a Parquet file, unreadable parts
         raise UserError(f"{table_path}: cannot read the results table ({exc})") from None
     done = table.done_ids(retry_errors=args.retry_errors)

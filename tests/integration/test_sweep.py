@@ -225,8 +225,10 @@ def test_that_a_killed_sweep_started_again_flies_only_the_missing_runs(
     path = write_campaign(tmp_path)
     out = tmp_path / "killed.parquet"
     parts = out.with_name(out.name + ".parts")
+    # each row journaled as it arrives (--flush-s 0): the whole campaign flies in about a second
+    # here, less than the default 2 s journal interval, so the kill must come after one row
     cmd = [sys.executable, "-m", "groundstation", "sweep", str(path), "--workers", "2",
-           "--out", str(out)]
+           "--out", str(out), "--flush-s", "0"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             start_new_session=True)
     # Test: SIGKILL to its whole process group once some rows are on disk
@@ -234,11 +236,12 @@ def test_that_a_killed_sweep_started_again_flies_only_the_missing_runs(
     while not (parts.is_dir() and any(parts.glob("part-*.parquet"))):
         assert proc.poll() is None, proc.stderr.read().decode() if proc.stderr else ""
         assert time.monotonic() < deadline
-        time.sleep(0.05)
+        time.sleep(0.005)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait(timeout=30)
-    saved = {str(r["run_id"]) for p in parts.glob("part-*.parquet")
-             for r in pq.read_table(p).to_pylist()}
+    part_rows = [pq.read_table(p).to_pylist() for p in parts.glob("part-*.parquet")]
+    assert all(len(rows) == 1 for rows in part_rows)  # one part per row with --flush-s 0
+    saved = {str(r["run_id"]) for rows in part_rows for r in rows}
     assert 0 < len(saved) < 16
     campaign = load_campaign(path)
     table = ResultsTable(out, {"campaign": campaign.name,

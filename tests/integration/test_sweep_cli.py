@@ -335,6 +335,15 @@ def test_that_fewer_than_one_worker_is_refused(
                                        f"{workers}\n")
 
 
+@pytest.mark.parametrize("flush_s", ["-1", "nan", "4000"])
+def test_that_a_journal_interval_out_of_range_is_refused(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], flush_s: str) -> None:
+    path = write_campaign(tmp_path)
+    assert main(["sweep", str(path), "--flush-s", flush_s]) == 2
+    assert capsys.readouterr().err == (f"fasthex: --flush-s must be between 0 and 3600 "
+                                       f"seconds, got {float(flush_s)}\n")
+
+
 def test_that_sweep_report_without_a_table_says_what_it_needs(
         capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["sweep", "report"]) == 2
