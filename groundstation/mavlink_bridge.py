@@ -16,7 +16,9 @@ state), ATTITUDE, ATTITUDE_QUATERNION, LOCAL_POSITION_NED, ODOMETRY, ACTUATOR_OU
 and STATUSTEXT, once, for every event of the snapshots, every phase transition
 (``ARMED -> TAKEOFF``; off with ``phase_events=False`` when the events already carry the
 transitions, as a flight session's do) and every health flag that changes (``fault: mocap`` /
-``ok: mocap``). A GCS may change a rate with MAV_CMD_SET_MESSAGE_INTERVAL. At the end,
+``ok: mocap``). Every phase change also goes out at once in a HEARTBEAT and an
+EXTENDED_SYS_STATE of the snapshot that made it, each change in order, however briefly the
+phase lasted. A GCS may change a rate with MAV_CMD_SET_MESSAGE_INTERVAL. At the end,
 :meth:`MavlinkBridge.announce_final` repeats the final state (HEARTBEAT disarmed,
 EXTENDED_SYS_STATE, one STATUSTEXT) for a while so that a GCS sees how the session ended.
 
@@ -134,6 +136,8 @@ FTP_ERR_UNKNOWN_COMMAND = 7
 FTP_ERR_FILE_NOT_FOUND = 10
 #: Default bound on offboard setpoint positions (m from the world origin): a lab cage.
 SETPOINT_RANGE_M = 10.0
+#: Phase changes remembered between two service passes (each sent as its own state messages).
+MAX_PHASE_CHANGES = 16
 
 
 _BUILDERS: dict[str, Callable[[VehicleTelemetry], Any]] = {
@@ -221,7 +225,11 @@ class MavlinkBridge:
         self._periods = {name: (1.0 / hz if hz > 0 else None)
                          for name, hz in config.rates_hz().items()}
         self._next_due: dict[str, float] = {}
-        self._heartbeat_now = False     # a phase change: the next pass sends the state
+        # the snapshots that changed the phase, oldest first: the next pass sends a HEARTBEAT
+        # and an EXTENDED_SYS_STATE of each, so a phase shorter than a service pass (a phase
+        # the loop left before the thread ran: a busy machine, a lockstep mission) still goes
+        # out, in order. Bounded: a loop flapping phases cannot grow it.
+        self._phase_changes: deque[VehicleTelemetry] = deque(maxlen=MAX_PHASE_CHANGES)
         self._chunk_id = 0
         self._gcs_heartbeat_t: float | None = None
         self._out: Counter[str] = Counter()
@@ -263,9 +271,10 @@ class MavlinkBridge:
             new: list[StatusEvent] = []
             if self._prev_phase is not None and tel.phase is not self._prev_phase:
                 # the new phase goes out in a HEARTBEAT and an EXTENDED_SYS_STATE (the landed
-                # state) at the next service pass, not up to a period later: a phase that lasts
-                # less than that (a short lockstep mission, a brief LANDING) is still seen
-                self._heartbeat_now = True
+                # state) of this very snapshot at the next service pass, not up to a period
+                # later and not replaced by a later phase: a phase that lasts less than that (a
+                # short lockstep mission, a brief LANDING) is still seen
+                self._phase_changes.append(tel)
                 if self._phase_events:
                     sev = Severity.EMERGENCY if tel.phase is FlightPhase.CUT \
                         else Severity.NOTICE
@@ -370,7 +379,7 @@ class MavlinkBridge:
 
     def next_due_s(self, now_s: float) -> float:
         """Seconds until the next telemetry message is due (for the service thread's wait)."""
-        if not self._next_due or self._heartbeat_now:
+        if not self._next_due or self._phase_changes:
             return 0.0
         return max(0.0, min(self._next_due.values()) - now_s)
 
@@ -453,15 +462,19 @@ class MavlinkBridge:
             tel = self._latest
             events = list(self._events)
             self._events.clear()
-            if self._heartbeat_now:     # due now, then their cadence again
-                for name in ("HEARTBEAT", "EXTENDED_SYS_STATE"):
-                    if name in self._next_due:
-                        self._next_due[name] = now
-            self._heartbeat_now = False
+            changes = list(self._phase_changes)
+            self._phase_changes.clear()
         for ev in events:
             self._chunk_id = self._chunk_id % 65535 + 1
             for m in messages.statustext(ev, self._chunk_id):
                 self._send(m)
+        for snap in changes:  # each phase change in its own state messages, then the cadence
+            for name in ("HEARTBEAT", "EXTENDED_SYS_STATE"):  # again from now
+                period = self._periods.get(name)
+                if period is not None:
+                    self._send(messages.heartbeat(snap) if name == "HEARTBEAT"
+                               else _BUILDERS[name](snap))
+                    self._next_due[name] = now + period
         for name, period in self._periods.items():
             if period is None:
                 self._next_due.pop(name, None)

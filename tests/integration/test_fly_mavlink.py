@@ -213,8 +213,9 @@ def test_that_unsigned_wrong_key_stale_and_replayed_commands_are_all_rejected_an
 
 def test_that_without_a_key_a_land_is_refused_the_flight_completes_and_ends_on_the_ground(
         tmp_path: Path) -> None:
-    # Fixture: no key anywhere; the shared 11 s mission
-    session = write_session(tmp_path, hover_s=4.0)
+    # Fixture: no key anywhere; a 12 s hover (lockstep: a few seconds of wall time, so the
+    # LAND arrives in flight)
+    session = write_session(tmp_path, hover_s=12.0)
     gcs = Gcs()
     proc = start_fly(session, tmp_path / "f.fhr", gcs.port, env=_env_without_key())
     try:

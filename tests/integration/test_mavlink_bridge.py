@@ -293,6 +293,30 @@ def test_that_a_phase_change_goes_out_in_a_heartbeat_at_once_then_the_cadence_re
     assert [t for t, _ in arrivals] == [0.51, 0.81, 1.81], arrivals
 
 
+def test_that_phases_the_loop_left_before_a_service_pass_each_go_out_in_order(
+        rig: Rig) -> None:
+    # Fixture: the loop runs through four phases between two passes of the service thread (a
+    # loaded machine, a lockstep mission faster than real time)
+    rig.drain(0)
+    phases = [FlightPhase.ARMED, FlightPhase.TAKEOFF, FlightPhase.MISSION, FlightPhase.LANDING]
+    for i, phase in enumerate(phases):
+        rig.bridge.publish(hover(0.1 + 0.001 * i, phase))
+    # Test: one pass
+    rig.bridge.step(0.2)
+    got = rig.drain(2 * len(phases))
+    # Assert: a HEARTBEAT and an EXTENDED_SYS_STATE of each phase, in the loop's order (not the
+    # latest phase four times); the landed state followed: in air from take-off
+    assert [hb.custom_mode for hb in got["HEARTBEAT"]] == phases
+    assert [bool(hb.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED) for hb in got["HEARTBEAT"]] == (
+        [True] * 4)
+    assert [e.landed_state for e in got["EXTENDED_SYS_STATE"]] == [
+        M.MAV_LANDED_STATE_ON_GROUND, M.MAV_LANDED_STATE_TAKEOFF, M.MAV_LANDED_STATE_IN_AIR,
+        M.MAV_LANDED_STATE_LANDING]
+    # then the periodic cadence from this pass: nothing more due before t = 1.2 s
+    rig.bridge.step(1.1)
+    assert "HEARTBEAT" not in rig.drain(0)
+
+
 def test_that_signed_commands_are_accepted_and_unsigned_wrong_key_and_replays_rejected() -> None:
     # Fixture: signing on both sides, the GCS with mavutil's own signing
     rig = Rig(key=KEY, peer_key=KEY)
