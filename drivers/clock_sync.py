@@ -144,9 +144,10 @@ class ClockSync:
 
     @property
     def drift_sigma_ppm(self) -> float:
-        """Standard error of :attr:`drift_ppm` from the scatter of the block minima about the
-        fitted line (inf until three blocks): early on it is the transport's jitter over a
-        short baseline, and it shrinks as the baseline grows."""
+        """Standard error of :attr:`drift_ppm` (inf until three blocks): the larger of the
+        scatter of the block minima about the fitted line and the jackknife of the slope, so a
+        trend that is not a rate (a start-up delay that shrinks) widens it. Early on it is the
+        transport's jitter over a short baseline; it shrinks as the baseline grows."""
         return self._s_sigma * 1e6
 
     @property
@@ -205,7 +206,29 @@ class ClockSync:
                 j = (start + k) % size
                 res = (self._pt_d[j] - d0) - c - s_new * (self._pt_r[j] - r0)
                 sse += res * res
-            self._s_sigma = math.sqrt(sse / (n - 2) / (srr - sr * sr / n))
+            sigma = math.sqrt(sse / (n - 2) / (srr - sr * sr / n))
+            # the jackknife of the slope (leave each minimum out in turn) as well: the fit's
+            # residuals only measure scatter, and a trend that is not a rate (the first
+            # samples of a stream stamped late by a host still starting up, their delay
+            # shrinking) bends the line with small residuals. Leaving the late minimum out
+            # moves the slope by about that bias, so the error bar covers it.
+            loo_sum = loo_sq = 0.0
+            m = n - 1
+            for k in range(n):
+                j = (start + k) % size
+                x = float(self._pt_r[j] - r0)
+                y = float(self._pt_d[j] - d0)
+                sr_k, sd_k = sr - x, sd - y
+                den_k = m * (srr - x * x) - sr_k * sr_k
+                if den_k <= 0.0:
+                    break
+                s_k = (m * (srd - x * y) - sr_k * sd_k) / den_k
+                loo_sum += s_k
+                loo_sq += s_k * s_k
+            else:
+                spread = max(loo_sq - loo_sum * loo_sum / n, 0.0)
+                sigma = max(sigma, math.sqrt(spread * (n - 1) / n))
+            self._s_sigma = sigma
         # re-refer the line to now, on the lowest block minimum under the new slope (the
         # running minimum then only has to follow what changed within one block)
         o = math.inf
