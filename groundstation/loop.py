@@ -161,6 +161,7 @@ class FlightLoop:
         # the vehicle waits at the planner's initial tilt: the first step after arming finds
         # its caches built
         self.computer.warm_up()
+        self.computer.rehearse()  # the first control tick runs specialised bytecode
         self._measured_interval = mission.measured_interval_s()
         # Take-off: the plan's take-off ends where its measured part starts; it waits there
         # (the mission clock stops) until the estimate is at that height (flight.py decides)

@@ -270,3 +270,27 @@ def test_that_the_compiled_control_law_equals_its_python_source(
     want = control_law(tuple(sut._k.tolist()), sut.mapper.rows(alpha), 20, 0.002, *v, *rest)
     # Assert: the same operations in the same order, the same numbers
     assert got == want
+
+
+def test_that_a_rehearsal_changes_none_of_the_computers_ticks() -> None:
+    # Fixture: two computers of Exp. 1 (its tilt steps exercise the planner and the map
+    # cache), one rehearsed before its first tick; a state that moves and an external force
+    mission = Mission(load_mission("exp1-hover-tilt-steps", vehicle=PARAMS))
+    plain = FlightComputer(PARAMS, mission)
+    rehearsed = FlightComputer(PARAMS, mission)
+    rehearsed.rehearse()
+    # Test + Assert: every output of 4000 ticks (8 s) equal bit for bit
+    alpha = 0.0
+    for k in range(4000):
+        t = 0.002 * k
+        s = VehicleState((HOVER[0] + 0.01 * math.sin(t), HOVER[1], HOVER[2] - 0.02 * math.cos(t)),
+                         (0.01 * math.cos(t), 0.0, 0.02 * math.sin(t)),
+                         quat_from_axis_angle((0.0, 0.0, 1.0), 0.01 * math.sin(3 * t)),
+                         (0.0, 0.02 * math.cos(2 * t), 0.0))
+        a = plain.step(t, s, alpha, force_ext_w_n=(0.1, 0.0, -0.2))
+        b = rehearsed.step(t, s, alpha, force_ext_w_n=(0.1, 0.0, -0.2))
+        assert a == b, k
+        assert plain.thrust_force_b(alpha, a.cmd.thrusts_n) == \
+            rehearsed.thrust_force_b(alpha, b.cmd.thrusts_n)
+        alpha += max(-0.0005, min(0.0005, a.alpha_cmd_rad - alpha))  # the servo follows
+    assert plain.controller.memory == rehearsed.controller.memory
