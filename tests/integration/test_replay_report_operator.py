@@ -51,8 +51,10 @@ def test_that_replay_save_runs_at_full_speed_by_default(record: Path, tmp_path: 
     # Test
     t_max = timed("--speed", "max", "--out", str(tmp_path / "max.rrd"))
     t_default = timed("--out", str(tmp_path / "default.rrd"))
-    # Assert
-    assert t_default < 2.0 * t_max, (t_default, t_max)
+    # Assert: paced by the record's clock, a save cannot end before the flight's duration has
+    # passed on the wall clock; unpaced it takes what the host gives it (1.8-3.8 s seen here,
+    # so no ratio to the --speed max run: on a loaded CI host that ratio reached 2.1)
+    assert t_default < duration_s, (t_default, t_max, duration_s)
     assert (tmp_path / "default.rrd").stat().st_size > 100_000
 
 
