@@ -472,8 +472,7 @@ class MavlinkBridge:
             for name in ("HEARTBEAT", "EXTENDED_SYS_STATE"):  # again from now
                 period = self._periods.get(name)
                 if period is not None:
-                    self._send(messages.heartbeat(snap) if name == "HEARTBEAT"
-                               else _BUILDERS[name](snap))
+                    self._send_now(name, snap)
                     self._next_due[name] = now + period
         for name, period in self._periods.items():
             if period is None:
@@ -482,16 +481,13 @@ class MavlinkBridge:
             due = self._next_due.setdefault(name, now)
             if now + 1e-9 < due:
                 continue
-            if name == "HEARTBEAT":
-                self._send(messages.heartbeat(tel))
-            elif tel is not None:
-                self._send(_BUILDERS[name](tel))
+            self._send_now(name, tel)
             # keep the cadence; after a stall, restart from now instead of bursting
             nxt = due + period
             self._next_due[name] = nxt if nxt > now else now + period
 
-    def _send_now(self, name: str) -> None:
-        tel = self._latest
+    def _send_now(self, name: str, tel: VehicleTelemetry | None) -> None:
+        """One telemetry message of ``tel`` (a HEARTBEAT even before the first snapshot)."""
         if name == "HEARTBEAT":
             self._send(messages.heartbeat(tel))
         elif tel is not None:
@@ -644,7 +640,7 @@ class MavlinkBridge:
             name = _MSG_IDS.get(msg_id)
             if name is None or (name != "HEARTBEAT" and self._latest is None):
                 return R.UNSUPPORTED if name is None else R.TEMPORARILY_REJECTED
-            self._send_now(name)
+            self._send_now(name, self._latest)
             return R.ACCEPTED
         if command == M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
             self._send_autopilot_version()

@@ -326,22 +326,19 @@ def test_that_a_campaign_value_out_of_range_names_its_line(
                    "<= 3600, got -1\n")
 
 
-@pytest.mark.parametrize("workers", ["0", "-3"])
-def test_that_fewer_than_one_worker_is_refused(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str], workers: str) -> None:
+@pytest.mark.parametrize(("option", "value", "error"), [
+    ("--workers", "0", "--workers must be at least 1, got 0"),
+    ("--workers", "-3", "--workers must be at least 1, got -3"),
+    ("--flush-s", "-1", "--flush-s must be between 0 and 3600 seconds, got -1.0"),
+    ("--flush-s", "nan", "--flush-s must be between 0 and 3600 seconds, got nan"),
+    ("--flush-s", "4000", "--flush-s must be between 0 and 3600 seconds, got 4000.0"),
+])
+def test_that_an_option_out_of_range_is_one_line_and_exit_2(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], option: str, value: str,
+        error: str) -> None:
     path = write_campaign(tmp_path)
-    assert main(["sweep", str(path), "--workers", workers]) == 2
-    assert capsys.readouterr().err == (f"fasthex: --workers must be at least 1, got "
-                                       f"{workers}\n")
-
-
-@pytest.mark.parametrize("flush_s", ["-1", "nan", "4000"])
-def test_that_a_journal_interval_out_of_range_is_refused(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str], flush_s: str) -> None:
-    path = write_campaign(tmp_path)
-    assert main(["sweep", str(path), "--flush-s", flush_s]) == 2
-    assert capsys.readouterr().err == (f"fasthex: --flush-s must be between 0 and 3600 "
-                                       f"seconds, got {float(flush_s)}\n")
+    assert main(["sweep", str(path), option, value]) == 2
+    assert capsys.readouterr().err == f"fasthex: {error}\n"
 
 
 def test_that_sweep_report_without_a_table_says_what_it_needs(
