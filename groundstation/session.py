@@ -354,6 +354,10 @@ class FlightSession:
         truth_path: Path | None = None
         rt_settings = (not lockstep if self.realtime_settings is None
                        else self.realtime_settings and not lockstep)
+        # Lockstep sets its own pace (no scheduler settings), but its CPUs are kept out of deep
+        # idle all the same: each tick waits on a pty round trip, and a CPU that sleeps through
+        # it wakes slowly and cold (drivers.realtime; lockstep flights run 1.3-1.5x faster)
+        hold_latency = lockstep and self.realtime_settings is not False
         try:
             if rt_settings:  # before any device thread runs: mlockall stalls the process
                 from drivers.realtime import lock_memory
@@ -471,6 +475,11 @@ class FlightSession:
                 settings.update(apply_realtime_settings(lock_memory=False))
                 event_sink("real-time settings: " + "; ".join(f"{k}: {v}"
                                                                for k, v in settings.items()))
+            elif hold_latency:
+                from drivers.realtime import hold_cpu_latency
+
+                settings["cpu idle"] = hold_cpu_latency(0)
+                event_sink(f"cpu idle: {settings['cpu idle']}")
             try:
                 result = loop.run()
             finally:
@@ -478,6 +487,10 @@ class FlightSession:
                     from groundstation.timing import restore_default_settings
 
                     restore_default_settings()
+                elif hold_latency:
+                    from drivers.realtime import release_cpu_latency
+
+                    release_cpu_latency()
             result.telemetry_dropped = ring.dropped
             status[0] = float(int(loop.sm.state))  # the final state, for the MAVLink GCS
             if self.stop_signals is not None and self.stop_signals.count:

@@ -2,16 +2,21 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from controller.missions import Mission
 from controller.params import VehicleParams
+from drivers.realtime import CPU_LATENCY_PATH
 from groundstation.configs import load_mission, load_vehicle
 from groundstation.session import FlightSession, SessionOutcome
 from groundstation.session_config import SessionConfig, load_session
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from groundstation.flight import FlightState
     from groundstation.record import FlightRecord
 
@@ -65,9 +70,30 @@ telemetry:
 """
 
 
+def open_cpu_latency_requests() -> int:
+    """How many CPU wake-up latency requests (``/dev/cpu_dma_latency``) this process has open.
+    Judged on the process's own files: the kernel's value is the tightest request of every
+    process, and other test workers may hold one at the same time."""
+    n = 0
+    for fd in os.listdir("/proc/self/fd"):
+        with contextlib.suppress(OSError):
+            n += os.readlink(f"/proc/self/fd/{fd}") == str(CPU_LATENCY_PATH)
+    return n
+
+
+def can_hold_cpu_latency() -> bool:
+    """Whether this process may open a CPU wake-up latency request (root, a PM QoS kernel)."""
+    try:
+        os.close(os.open(CPU_LATENCY_PATH, os.O_WRONLY))
+    except OSError:
+        return False
+    return True
+
+
 def fly(tmp_path: Path, *, name: str = "flight", seed: int = 3, faults: str = "",
         corrupt: float = 0.0, zmax: float = 2.5, servo_action: str = "hold",
-        requests: tuple[tuple[float, str], ...] = ()) -> SessionOutcome:
+        requests: tuple[tuple[float, str], ...] = (), realtime_settings: bool | None = None,
+        on_event: Callable[[str], None] | None = None) -> SessionOutcome:
     (tmp_path / "short-hover.yaml").write_text(SHORT_MISSION)
     session_path = tmp_path / f"{name}.yaml"
     session_path.write_text(SESSION.format(seed=seed, faults=faults, corrupt=corrupt,
@@ -79,7 +105,8 @@ def fly(tmp_path: Path, *, name: str = "flight", seed: int = 3, faults: str = ""
     session = FlightSession(cfg, load_vehicle("fasthex"),
                             Mission(load_mission(tmp_path / "short-hover.yaml")),
                             record_path=tmp_path / f"{name}.fhr", echo_events=False,
-                            scripted_requests=requests)
+                            scripted_requests=requests, realtime_settings=realtime_settings,
+                            on_event=on_event)
     return session.run()
 
 

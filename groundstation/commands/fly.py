@@ -57,8 +57,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no live status or event lines")
     parser.add_argument("--realtime-settings", action=argparse.BooleanOptionalAction,
                         default=None, help="CPU pinning, SCHED_FIFO for every loop thread, "
-                        "locked memory and a frozen GC, each where permitted (default: on for "
-                        "hardware and realtime sessions, off in lockstep)")
+                        "locked memory, a frozen GC and the CPU wake-up latency held at 0, each "
+                        "where permitted (default: on for hardware and realtime sessions; in "
+                        "lockstep the wake-up latency only)")
     parser.add_argument("--rerun", choices=("spawn", "serve", "save", "off", "auto"),
                         default=None, help="live dashboard: spawn the viewer, serve the web "
                         "viewer, save RECORD.rrd, or off (default: the session's; auto = spawn "

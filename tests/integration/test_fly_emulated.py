@@ -8,11 +8,14 @@ Short missions keep the suite fast; the paper's full experiments are in test_fly
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
 from flight_support import SESSION, SHORT_MISSION, fly  # noqa: F401
+from flight_support import can_hold_cpu_latency as can_request
+from flight_support import open_cpu_latency_requests as open_requests
 
 from groundstation.flight import FlightState
 from groundstation.record import read_record
@@ -54,8 +57,27 @@ def test_that_a_short_flight_is_flown_landed_and_recorded(tmp_path: Path) -> Non
 
 
 def test_that_two_runs_with_the_same_seed_give_identical_records(tmp_path: Path) -> None:
-    a = fly(tmp_path, name="a", seed=5)
-    b = fly(tmp_path, name="b", seed=5)
+    """Also: a lockstep flight holds the CPU wake-up latency while it flies (not with
+    --no-realtime-settings) and releases it after; the hold changes the speed, not a bit of
+    the record."""
+    held: dict[str, list[int]] = {"a": [], "b": []}
+
+    def watch(name: str) -> Callable[[str], None]:
+        def on_event(line: str) -> None:
+            if "-> TAKEOFF" in line or "-> LANDING" in line:  # in flight, from the loop
+                held[name].append(open_requests())
+        return on_event
+
+    a = fly(tmp_path, name="a", seed=5, on_event=watch("a"))
+    assert open_requests() == 0
+    b = fly(tmp_path, name="b", seed=5, realtime_settings=False, on_event=watch("b"))
+    assert open_requests() == 0
+    holds = can_request()
+    assert held == {"a": [int(holds)] * 2, "b": [0, 0]}
+    if holds:
+        assert a.realtime_settings == {"cpu idle": "wake-up latency held at 0 us "
+                                                   "(/dev/cpu_dma_latency)"}
+    assert b.realtime_settings == {}
     ra, rb = read_record(a.record_path).rows, read_record(b.record_path).rows
     assert len(ra) == len(rb) > 4000
     assert ra.tobytes() == rb.tobytes()
