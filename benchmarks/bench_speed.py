@@ -10,6 +10,10 @@ baseline it is judged against, measured in the same run.
   the same mission: no bytes, no second process): >= 10x real time. Its floor on this
   machine: a bare pty round trip between two processes plus the numerics, per 2 ms tick
   (nothing else computed, no physics); the row says how far that floor allows.
+- The CPU wake-up latency: a flight holds it at 0 (``drivers.realtime``); the same lockstep
+  flight with ``--no-realtime-settings`` (CPUs left to idle), and the numerics run after a
+  pty round trip (the wait a lockstep tick follows) with and without the hold, show what a
+  CPU that sleeps between ticks costs the same code.
 - ``fasthex simulate --estimator ukf``: >= 30x; ``fasthex simulate`` (truth + noise): >= 60x.
 - Realtime 1 kHz emulated session against the same at 500 Hz: misses < 0.1 %, compute p99
   < 0.5 ms, position error no worse. The flights are the shipped sessions ``exp1-emulated``
@@ -40,9 +44,10 @@ import sys
 import tempfile
 import time
 import tty
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import Literal
+from typing import Literal, TypeVar
 
 import numpy as np
 
@@ -54,6 +59,7 @@ from config import find_config
 from controller.missions import Mission
 from controller.pipeline import FlightComputer
 from controller.reference import VehicleState
+from drivers.realtime import hold_cpu_latency, release_cpu_latency
 from estimator import EstimatorConfig, Ukf
 from groundstation.configs import load_disturbances, load_mission, load_vehicle
 from groundstation.metrics import flight_metrics
@@ -64,6 +70,7 @@ from sim_backend.closed_loop import TruthPlusNoise, UkfStateSource
 from sim_backend.simulator import FastHexSimulator
 
 ROOT = Path(__file__).resolve().parents[1]
+T = TypeVar("T")
 EXP1 = "exp1-hover-tilt-steps"
 
 
@@ -137,10 +144,11 @@ SHIPPED = {500.0: "exp1-emulated", 1000.0: "exp1-emulated-1khz"}
 
 
 def fly(tmp: Path, clock: Literal["realtime", "lockstep"], rate_hz: float,
-        duration_s: float | None) -> SessionOutcome:
+        duration_s: float | None, realtime_settings: bool | None = None) -> SessionOutcome:
     """The shipped Exp. 1 session at ``rate_hz`` (its safety settings, e.g. the 0.15 s IMU
-    timeout), on ``clock``, no dashboard; ``duration_s``: then an operator landing."""
-    name = f"{clock}-{rate_hz:.0f}"
+    timeout), on ``clock``, no dashboard; ``duration_s``: then an operator landing;
+    ``realtime_settings`` as ``fly --[no-]realtime-settings`` (None: the default)."""
+    name = f"{clock}-{rate_hz:.0f}-{realtime_settings}"
     cfg = load_session(find_config("sessions", SHIPPED[rate_hz]))
     assert isinstance(cfg.backend, EmulatedBackend)
     cfg = replace(cfg, backend=replace(cfg.backend, clock=clock))
@@ -149,12 +157,14 @@ def fly(tmp: Path, clock: Literal["realtime", "lockstep"], rate_hz: float,
         requests = ((duration_s, "land"),)
     return FlightSession(cfg, load_vehicle("fasthex"), Mission(load_mission(EXP1)),
                          record_path=tmp / f"{name}.fhr", echo_events=False,
-                         scripted_requests=requests, dashboard="off").run()
+                         scripted_requests=requests, dashboard="off",
+                         realtime_settings=realtime_settings).run()
 
 
-def numerics_baseline(n: int = 3000) -> float:
+def numerics_baseline(n: int = 3000, between: Callable[[], object] | None = None) -> float:
     """Median (us) of a tick's numerics alone: UKF predict (+ a pose every 5th tick, as at
-    100 Hz MoCap) and the controller, in-process, no I/O."""
+    100 Hz MoCap) and the controller, in-process, no I/O. ``between``: run (untimed) before
+    each tick, e.g. the pty round trip a lockstep tick waits on."""
     params = load_vehicle("fasthex")
     computer = FlightComputer(params, Mission(load_mission(EXP1, vehicle=params)))
     ukf = Ukf(replace(EstimatorConfig(), mass_kg=params.mass_kg))
@@ -162,6 +172,8 @@ def numerics_baseline(n: int = 3000) -> float:
     out = np.empty(n)
     for k in range(n):
         t = 0.002 * (k + 1)
+        if between is not None:
+            between()
         t0 = time.perf_counter_ns()
         ukf.predict(t, (0.0, 0.0, 0.0), (0.0, 0.0, 9.81))
         if k % 5 == 0:
@@ -185,29 +197,64 @@ def _echo(fd: int) -> None:
         os.write(fd, data)
 
 
+class PtyEcho:
+    """A pty whose far end, in another process, sends back what arrives (the board's side of
+    a lockstep exchange with nothing computed)."""
+
+    FRAME = b"^w" + bytes(13) + b"$"
+
+    def __init__(self) -> None:
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)
+        self.proc = multiprocessing.get_context("fork").Process(
+            target=_echo, args=(self.master,), daemon=True)
+        self.proc.start()
+
+    def round_trip(self) -> None:
+        os.write(self.slave, self.FRAME)
+        got = 0
+        while got < len(self.FRAME):
+            select.select([self.slave], [], [])
+            got += len(os.read(self.slave, 4096))
+
+    def close(self) -> None:
+        os.write(self.slave, b"q")
+        self.proc.join(5.0)
+        os.close(self.master)
+        os.close(self.slave)
+
+
 def pty_round_trip_us(n: int = 3000) -> float:
     """Median (us) of a bare pty round trip between two processes: 16 bytes out, the same
     back (a ``w`` frame answered by the board), nothing computed on either side. A lockstep
     tick waits for one such round trip at least, plus the board's physics step."""
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    ctx = multiprocessing.get_context("fork")
-    echo = ctx.Process(target=_echo, args=(master,), daemon=True)
-    echo.start()
-    frame, out = b"^w" + bytes(13) + b"$", np.empty(n)
+    echo, out = PtyEcho(), np.empty(n)
     for k in range(n):
         t0 = time.perf_counter_ns()
-        os.write(slave, frame)
-        got = 0
-        while got < len(frame):
-            select.select([slave], [], [])
-            got += len(os.read(slave, 4096))
+        echo.round_trip()
         out[k] = (time.perf_counter_ns() - t0) / 1e3
-    os.write(slave, b"q")
-    echo.join(5.0)
-    os.close(master)
-    os.close(slave)
+    echo.close()
     return float(np.median(out[200:]))
+
+
+def numerics_after_wait_us() -> float:
+    """The numerics of :func:`numerics_baseline` when each tick follows a pty round trip, as
+    a lockstep tick does: the same code, on a CPU that has just waited."""
+    echo = PtyEcho()
+    try:
+        return numerics_baseline(between=echo.round_trip)
+    finally:
+        echo.close()
+
+
+def with_cpu_latency_held(fn: Callable[[], T], held: bool) -> T:
+    """``fn()`` with the CPU wake-up latency held at 0 (as a flight holds it) or left alone."""
+    if held:
+        hold_cpu_latency(0)
+    try:
+        return fn()
+    finally:
+        release_cpu_latency()
 
 
 def pos_err_mm(record_path: Path) -> float:
@@ -230,12 +277,15 @@ def main() -> int:
     fast, stock, worst = ukf_figures(args.ukf_seconds)
     parts = tick_breakdown()
     base_us = numerics_baseline()
-    pty_us = pty_round_trip_us()
+    pty_us = {held: with_cpu_latency_held(pty_round_trip_us, held) for held in (True, False)}
+    waited_us = {held: with_cpu_latency_held(numerics_after_wait_us, held)
+                 for held in (True, False)}
     sim_truth = simulate_speed("truth", None)
     sim_ukf = simulate_speed("ukf", None)
     with tempfile.TemporaryDirectory(prefix="fasthex-speed-") as d:
         tmp = Path(d)
         lock = fly(tmp, "lockstep", 500.0, None)
+        lock_idle = fly(tmp, "lockstep", 500.0, None, realtime_settings=False)
         lock_1k = fly(tmp, "lockstep", 1000.0, None)   # deterministic: tracking 1 kHz vs 500 Hz
         lock_errs = {500.0: pos_err_mm(lock.record_path), 1000.0: pos_err_mm(lock_1k.record_path)}
         rt = {} if args.skip_realtime else {
@@ -249,17 +299,33 @@ def main() -> int:
     print("|---|---|---|---|---|---|")
     row("UKF predict + update, medians", f"{fast:.1f} us", f"stock {stock:.1f} us",
         f"{stock / fast:.1f}x", "<= 40 us, >= 20x", fast <= 40.0 and stock / fast >= 20.0)
-    t = lock.result.timing
+    t, t_idle = lock.result.timing, lock_idle.result.timing
+    held = lock.realtime_settings.get("cpu idle", "not held")
+    print(f"lockstep flights: cpu idle {held}; the other with --no-realtime-settings")
+    print(f"numerics after a pty round trip (as a lockstep tick runs them): {waited_us[True]:.0f}"
+          f" us with the wake-up latency held, {waited_us[False]:.0f} us without; back to "
+          f"back {base_us:.0f} us")
     lock_x = (lock.result.ticks / 500.0) / lock.result.loop_wall_s
+    idle_x = (lock_idle.result.ticks / 500.0) / lock_idle.result.loop_wall_s
     row("tick compute p50 (lockstep, byte path)", f"{t.compute_p50_ms * 1e3:.0f} us",
         f"numerics {base_us:.0f} us", f"{t.compute_p50_ms * 1e3 / base_us:.2f}x", "<= 1.5x",
         t.compute_p50_ms * 1e3 <= 1.5 * base_us)
+    row("tick compute p50, CPUs left to idle", f"{t_idle.compute_p50_ms * 1e3:.0f} us",
+        f"numerics after a wait {waited_us[False]:.0f} us",
+        f"{t_idle.compute_p50_ms * 1e3 / waited_us[False]:.2f}x", "(the same wait)", True)
+    row("tick compute p50 against the numerics after the same wait",
+        f"{t.compute_p50_ms * 1e3:.0f} us", f"numerics after a wait {waited_us[True]:.0f} us",
+        f"{t.compute_p50_ms * 1e3 / waited_us[True]:.2f}x", "(the same wait)", True)
     row("lockstep flight, byte path", f"{lock_x:.1f}x real time",
         f"simulate truth {sim_truth:.1f}x", f"{lock_x / sim_truth:.2f}", ">= 10x",
         lock_x >= 10.0)
-    floor_x = 2000.0 / (pty_us + base_us)   # 500 Hz: 2000 us of simulated time per tick
-    row("lockstep floor: a bare pty round trip + the numerics", f"{pty_us + base_us:.0f} us/tick",
-        f"pty {pty_us:.0f} us + numerics {base_us:.0f} us", f"at most {floor_x:.1f}x real time",
+    row("lockstep flight, CPUs left to idle (--no-realtime-settings)", f"{idle_x:.1f}x",
+        f"held: {lock_x:.1f}x", f"{lock_x / idle_x:.2f}x faster held", "", True)
+    floor_us = pty_us[True] + waited_us[True]
+    floor_x = 2000.0 / floor_us   # 500 Hz: 2000 us of simulated time per tick
+    row("lockstep floor: a bare pty round trip + the numerics after it",
+        f"{floor_us:.0f} us/tick", f"pty {pty_us[True]:.0f} us (CPUs idle: {pty_us[False]:.0f})"
+        f" + numerics {waited_us[True]:.0f} us", f"at most {floor_x:.1f}x real time",
         ">= 10x possible?", floor_x >= 10.0)
     row("simulate --estimator ukf", f"{sim_ukf:.1f}x real time",
         f"truth {sim_truth:.1f}x", f"{sim_ukf / sim_truth:.2f}", ">= 30x", sim_ukf >= 30.0)
