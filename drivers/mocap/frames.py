@@ -141,7 +141,7 @@ class FrameConfig:
 class FrameTransform:
     """Precomputed :class:`FrameConfig`: ``to_world`` for clients, ``to_mocap`` for emulators."""
 
-    __slots__ = ("_c", "_c_inv", "_cfg", "_o", "_q_rb_b", "_q_wm", "_scale", "_t")
+    __slots__ = ("_c", "_c_inv", "_cfg", "_o", "_q_mw", "_q_rb_b", "_q_wm", "_scale", "_t")
 
     def __init__(self, cfg: FrameConfig | None = None) -> None:
         cfg = cfg or FrameConfig()
@@ -150,6 +150,7 @@ class FrameTransform:
         self._c_inv = quat_conj(self._c)
         self._scale = cfg.scale_to_m
         self._q_wm = quat_normalize(cfg.world_from_mocap_q)
+        self._q_mw = quat_conj(self._q_wm)
         self._t = cfg.mocap_origin_w_m
         self._q_rb_b = quat_normalize(cfg.rb_to_body_q)
         self._o = cfg.body_origin_rb_m
@@ -175,14 +176,22 @@ class FrameTransform:
         p_wb = (p_w[0] + off[0], p_w[1] + off[1], p_w[2] + off[2])
         return p_wb, quat_normalize(quat_mul(q_w_rb, self._q_rb_b))
 
+    def point_to_mocap(self, p_w_m: Vec3) -> Vec3:
+        """A world point (a marker, not a body origin) -> MoCap position (MoCap units): the
+        position part of :meth:`to_mocap` without the rigid body's origin offset."""
+        p_w = (p_w_m[0] - self._t[0], p_w_m[1] - self._t[1], p_w_m[2] - self._t[2])
+        p_raw = quat_rotate(self._c_inv, quat_rotate(self._q_mw, p_w))
+        s = 1.0 / self._scale
+        return (p_raw[0] * s, p_raw[1] * s, p_raw[2] * s)
+
     def to_mocap(self, pos_w_m: Vec3, q_wb: Quat) -> tuple[Vec3, tuple[float, float, float, float]]:
         """Inverse of :meth:`to_world`: world body pose -> (MoCap position, wire quat x,y,z,w)."""
         q_w_rb = quat_mul(quat_normalize(q_wb), quat_conj(self._q_rb_b))
         off = quat_rotate(q_w_rb, self._o)
         p_w = (pos_w_m[0] - off[0] - self._t[0], pos_w_m[1] - off[1] - self._t[1],
                pos_w_m[2] - off[2] - self._t[2])
-        p_c = quat_rotate(quat_conj(self._q_wm), p_w)
-        q_c = quat_mul(quat_conj(self._q_wm), q_w_rb)
+        p_c = quat_rotate(self._q_mw, p_w)
+        q_c = quat_mul(self._q_mw, q_w_rb)
         p_raw = quat_rotate(self._c_inv, p_c)
         q_raw = quat_normalize(quat_mul(quat_mul(self._c_inv, q_c), self._c))
         s = 1.0 / self._scale

@@ -388,8 +388,7 @@ class NatNetServer:
             mk = []
             for i, m in enumerate(DEFAULT_MARKERS_B_M):
                 r = quat_rotate(q, m)
-                pm, _ = self._transform.to_mocap((p_w[0] + r[0], p_w[1] + r[1], p_w[2] + r[2]),
-                                                 IDENTITY_Q)
+                pm = self._transform.point_to_mocap((p_w[0] + r[0], p_w[1] + r[1], p_w[2] + r[2]))
                 mk.append(pm)
                 labeled.append(natnet.LabeledMarker((rb.body_id << 16) | (i + 1), pm, 0.014,
                                                     0x04 if visible else 0x01, 0.0002))

@@ -127,3 +127,24 @@ def test_that_to_mocap_inverts_to_world(p: tuple[float, float, float],
     p2, q2 = sut.to_world(p_m, q_m)
     assert _close(p2, p, 1e-8)
     assert quat_angle_rad(q2, q) < 1e-7
+
+
+@given(p=st.tuples(coord, coord, coord), up=st.sampled_from(["y", "z"]),
+       units=st.sampled_from(["m", "mm"]))
+def test_that_a_marker_point_maps_as_a_body_at_it_with_no_origin_offset(
+        p: tuple[float, float, float], up: str, units: str) -> None:
+    """A marker is a point: the rigid body's origin offset and attitude do not move it. With no
+    offset it is exactly the position to_mocap gives a body there (the emulated NatNet frames'
+    bytes did not change when the markers moved to point_to_mocap)."""
+    common = {"up_axis": up, "units": units,
+              "world_from_mocap_q": quat_from_axis_angle((0.0, 0.0, 1.0), 0.3),
+              "mocap_origin_w_m": (1.0, 2.0, 0.0)}
+    plain = FrameTransform(FrameConfig(**common))  # type: ignore[arg-type]
+    offset = FrameTransform(FrameConfig(**common,  # type: ignore[arg-type]
+                                        rb_to_body_q=quat_from_axis_angle((1.0, 0.0, 0.0), 0.2),
+                                        body_origin_rb_m=(0.0, 0.0, -0.05)))
+    assert plain.point_to_mocap(p) == plain.to_mocap(p, (1.0, 0.0, 0.0, 0.0))[0]
+    assert offset.point_to_mocap(p) == plain.point_to_mocap(p)
+    # and back: a body at the marker with no offset lands on the point
+    back, _ = plain.to_world(plain.point_to_mocap(p), (0.0, 0.0, 0.0, 1.0))
+    assert _close(back, p, 1e-8)
