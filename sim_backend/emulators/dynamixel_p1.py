@@ -73,6 +73,13 @@ from drivers.dynamixel.control_table import (
 from sim_backend.ptylink import PtyEndpoint
 from sim_backend.vehicle import EmulatedVehicle
 
+#: each register's (first byte, end, size, value mask, sign bit or 0), by address: the table
+#: is read and written some 30 times per instruction, so the layout is worked out once here
+_LAYOUT: dict[int, tuple[int, int, int, int, int]] = {
+    a: (a, a + r.size, r.size, (1 << (8 * r.size)) - 1,
+        (1 << (8 * r.size - 1)) if r.signed else 0)
+    for a, r in BY_ADDRESS.items()}
+
 log = logging.getLogger(__name__)
 
 STEP_PERIOD_S = 0.002
@@ -429,16 +436,15 @@ class EmulatedMX28:
         self._write_reg(Reg.FIRMWARE_VERSION, self._firmware)
 
     def _read_reg(self, reg: Reg) -> int:
-        r = BY_ADDRESS[int(reg)]
-        raw = int.from_bytes(self._table[r.address : r.address + r.size], "little")
-        if r.signed and raw & (1 << (8 * r.size - 1)):
-            raw -= 1 << (8 * r.size)
+        start, end, _, mask, sign_bit = _LAYOUT[reg]
+        raw = int.from_bytes(self._table[start:end], "little")
+        if raw & sign_bit:
+            raw -= mask + 1
         return raw
 
     def _write_reg(self, reg: Reg, value: int) -> None:
-        r = BY_ADDRESS[int(reg)]
-        mask = (1 << (8 * r.size)) - 1
-        self._table[r.address : r.address + r.size] = (value & mask).to_bytes(r.size, "little")
+        start, end, size, mask, _ = _LAYOUT[reg]
+        self._table[start:end] = (value & mask).to_bytes(size, "little")
 
     def mode(self) -> Mode:
         return mode_from_limits(self._read_reg(Reg.CW_ANGLE_LIMIT),
