@@ -404,13 +404,10 @@ def _payload(data: bytes) -> tuple[int, int]:
 
 def _read_rbs(data: bytes, off: int, end: int, n: int) -> tuple[tuple[RigidBodyData, ...], int]:
     _need(off, n * 38, end)
-    rbs = []
-    unpack = _RB.unpack_from
-    for _ in range(n):
-        bid, px, py, pz, qx, qy, qz, qw, err, params = unpack(data, off)
-        rbs.append(RigidBodyData(bid, (px, py, pz), (qx, qy, qz, qw), err, bool(params & 1)))
-        off += 38
-    return tuple(rbs), off
+    rbs = tuple(RigidBodyData(bid, (px, py, pz), (qx, qy, qz, qw), err, bool(params & 1))
+                for bid, px, py, pz, qx, qy, qz, qw, err, params
+                in _RB.iter_unpack(data[off:off + 38 * n]))
+    return rbs, off + 38 * n
 
 
 def _sec(data: bytes, off: int, end: int, version: NatNetVersion, min_item: int
@@ -456,13 +453,12 @@ def decode_frame_payload(data: bytes, off: int, end: int, version: NatNetVersion
     for _ in range(n):
         name, off = _cstr(data, off, end)
         k, off = _count(data, off, end, 12)
-        msets.append(MarkerSetData(name, tuple(_V3.unpack_from(data, off + 12 * i)
-                                               for i in range(k))))
+        msets.append(MarkerSetData(name, tuple(_V3.iter_unpack(data[off:off + 12 * k]))))
         off += 12 * k
     off = _close(off, dend)
     # legacy unlabeled markers
     n, off, dend = _sec(data, off, end, version, 12)
-    unl = tuple(_V3.unpack_from(data, off + 12 * i) for i in range(n))
+    unl = tuple(_V3.iter_unpack(data[off:off + 12 * n]))
     off = _close(off + 12 * n, dend)
     # rigid bodies
     n, off, dend = _sec(data, off, end, version, 38)
@@ -484,12 +480,9 @@ def decode_frame_payload(data: bytes, off: int, end: int, version: NatNetVersion
     # labeled markers
     n, off, dend = _sec(data, off, end, version, 26)
     _need(off, 26 * n, end)
-    lms = []
-    for _ in range(n):
-        mid, x, y, z, size, params, resid = _LM.unpack_from(data, off)
-        lms.append(LabeledMarker(mid, (x, y, z), size, params, resid))
-        off += 26
-    off = _close(off, dend)
+    lms = tuple(LabeledMarker(mid, (x, y, z), size, params, resid)
+                for mid, x, y, z, size, params, resid in _LM.iter_unpack(data[off:off + 26 * n]))
+    off = _close(off + 26 * n, dend)
     # force plates, devices
     for _ in range(2):
         n, off, dend = _sec(data, off, end, version, 8)
@@ -506,7 +499,7 @@ def decode_frame_payload(data: bytes, off: int, end: int, version: NatNetVersion
     elif rest not in (2, 6) or version >= (4, 1):
         raise NatNetDecodeError(f"frame suffix has {rest} trailing bytes")
     (params,) = _I16.unpack_from(data, off)
-    return FrameOfData(frame_number, rbs, tuple(msets), unl, tuple(skels), tuple(lms),
+    return FrameOfData(frame_number, rbs, tuple(msets), unl, tuple(skels), lms,
                        tc, tcs, ts, t_mid, t_rx, t_tx, precision, params & 0xFFFF)
 
 
