@@ -19,9 +19,10 @@ caches cold, so the tick that follows computes two to three times slower than th
 back to back. Writing 0 to that device and keeping it open holds every CPU in its shallowest
 idle state (polling) while the request is open, as ``cyclictest`` and the ``latency-performance``
 tuned profile do; the kernel drops the request when the file closes, also when the process
-dies. Measured on a 2-CPU virtual machine: a lockstep flight 4.0-4.2x -> 5.2-6.1x real time,
-tick compute p50 156-175 -> 113-142 us (``benchmarks/bench_speed.py`` measures it each run).
-The cost: idle CPUs spin instead of sleeping while a flight runs.
+dies. Measured on a 2-CPU virtual machine: a lockstep flight 3.3-3.9x -> 5.1-6.1x real time,
+tick compute p50 168-193 -> 116-139 us (``benchmarks/bench_speed.py`` measures it each run).
+The cost: idle CPUs spin instead of sleeping while a flight runs; with no CPU ever idle (three
+lockstep flights at once on two CPUs) it cannot help, and those flights took 5-10 % longer.
 """
 
 from __future__ import annotations
