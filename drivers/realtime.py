@@ -56,7 +56,8 @@ def _thread_ids() -> list[int]:
 def hold_cpu_latency(max_us: int = 0, path: Path = CPU_LATENCY_PATH) -> str:
     """Ask the kernel to keep every CPU's wake-up latency at or below ``max_us`` (0: the CPUs
     poll when idle) until :func:`release_cpu_latency` or the end of the process. Returns the
-    outcome for the operator; never raises. A second call replaces the first request."""
+    outcome for the operator: a system that refuses it is reported, not raised (a ``max_us``
+    outside 0..2e9 is a programming error: ValueError). A second call replaces the first."""
     global _cpu_latency_fd
     if not 0 <= max_us <= 2_000_000_000:
         raise ValueError(f"max_us must be in 0..2000000000, got {max_us}")

@@ -356,7 +356,7 @@ class FlightSession:
                        else self.realtime_settings and not lockstep)
         # Lockstep sets its own pace (no scheduler settings), but its CPUs are kept out of deep
         # idle all the same: each tick waits on a pty round trip, and a CPU that sleeps through
-        # it wakes slowly and cold (drivers.realtime; lockstep flights run 1.3-1.5x faster)
+        # it wakes slowly and cold (drivers.realtime: about 1.7x faster on a quiet machine)
         hold_latency = lockstep and self.realtime_settings is not False
         try:
             if rt_settings:  # before any device thread runs: mlockall stalls the process
