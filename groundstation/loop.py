@@ -327,9 +327,10 @@ class FlightLoop:
                 else 250
             servo_cycle = opts.lockstep and n % sync_every == 0
             if servo_cycle:
-                # Lockstep: the servo process talks to the bus while this tick computes (the
-                # simulated time stands still until `w` goes out); the measurement is used
-                # from the next tick on, as a free-running servo's would be.
+                # Lockstep: the servo answers on its bus while this tick computes (the READ
+                # goes out here, its reply is taken before `w`: the simulated time stands
+                # still until then); the measurement is used from the next tick on, as a
+                # free-running servo's would be.
                 try:
                     self.tilt.begin_cycle()
                 except Exception as exc:  # a servo fault is a health state, not a crash

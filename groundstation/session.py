@@ -393,14 +393,17 @@ class FlightSession:
                 sdk_latency_timer_ms=250.0 if lockstep else 16.0,
                 # and a healthy servo's cycle is asked again twice before a missing reply is a
                 # fault (an emulated servo starved by a loaded host is late, not faulty)
-                late_reply_retries=2 if lockstep else 0))
+                late_reply_retries=2 if lockstep else 0),
+                # lockstep: the loop waits for each cycle anyway; served in its own thread, the
+                # servo answers while the tick computes, with no process hop (drivers.dynamixel)
+                isolation="inline" if lockstep else "process")
             with stop_signals_blocked():  # its process must not die of a stray Ctrl-C
                 _open_device("servo", servo_uri, servo.start)
             if lockstep:
-                # one cycle now, while no simulated time runs: the servo process has started
-                # its SDK and answered once, so the loop's first cycles do not depend on how
-                # long a loaded host took to spawn it (a repeatable run); a servo that does
-                # not answer is the preflight's to report
+                # one cycle now, while no simulated time runs: the servo is configured and
+                # has answered once, so the loop's first cycles do not depend on how long a
+                # loaded host took for that (a repeatable run); a servo that does not answer
+                # is the preflight's to report
                 with contextlib.suppress(Exception):
                     servo.sync_cycle(LOCKSTEP_SERVO_START_S)
             self._check_interrupted("starting the tilt servo")
@@ -595,7 +598,7 @@ def _open_device(what: str, uri: str, open_it: Callable[[], T]) -> T:
         raise SessionError(text if uri in text else f"{what} {uri}: {text}") from None
 
 
-#: lockstep: how long the first servo cycle may take (the servo process starting)
+#: lockstep: how long the first servo cycle may take (the servo being configured)
 LOCKSTEP_SERVO_START_S = 20.0
 #: props-off bench test: idle spin after the spin-up, seconds
 PROPS_OFF_SPIN_S = 3.0

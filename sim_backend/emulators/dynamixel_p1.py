@@ -83,9 +83,12 @@ _LAYOUT: dict[int, tuple[int, int, int, int, int]] = {
 log = logging.getLogger(__name__)
 
 STEP_PERIOD_S = 0.002
+"""How often the motion and thermal models are stepped while no bytes arrive (wall time)."""
+IDLE_WAIT_S = 0.05
+"""Lockstep (no stepping on the wall clock): the longest the serving thread sleeps while no
+bytes arrive; it only looks for a stop then."""
 SPEED_WINDOW_S = 0.05
 """Present Speed is the mean speed over this much vehicle time."""
-"""How often the motion and thermal models are stepped while no bytes arrive (wall time)."""
 
 
 _TERMIOS_BAUDS = {getattr(termios, f"B{bps}"): bps for bps in (
@@ -341,7 +344,9 @@ class EmulatedMX28:
                 with self._mutex:
                     self.step()
                 continue
-            timeout = STEP_PERIOD_S
+            # in lockstep nothing moves between instructions: no wake-ups on a timer (each one
+            # would take the GIL from the Flight-Ctrl thread that is stepping the physics)
+            timeout = STEP_PERIOD_S if self._step_on_wall_clock else IDLE_WAIT_S
             if self._replies:
                 timeout = max(0.0, min(timeout, self._replies[0][0] - time.monotonic()))
             data = b""

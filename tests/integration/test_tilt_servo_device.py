@@ -7,6 +7,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Literal
 
 import pytest
 
@@ -201,12 +202,14 @@ def test_that_in_lockstep_the_servo_follows_the_simulated_clock(tmp_path: Path) 
     assert tilt / DEG == pytest.approx(1.5 * 292 * 0.114 * 6 * 0.05, abs=0.03)
 
 
+@pytest.mark.parametrize("isolation", ["process", "inline"])
 def test_that_an_on_request_servo_runs_one_cycle_per_begin_finish_pair(
-        emulator: EmulatedMX28) -> None:
+        emulator: EmulatedMX28, isolation: Literal["process", "inline"]) -> None:
     # Fixture: a lockstep-style servo, serviced only when asked, with the lockstep sessions'
-    # late-reply retries (a loaded CI host once lost the emulator's reply to the goal write)
+    # late-reply retries (a loaded CI host once lost the emulator's reply to the goal write);
+    # in the servo process, or inline (the SDK in this thread, as a lockstep flight runs it)
     servo = TiltServo(config_for(emulator, serve="on_request", rate_limit_goal=False,
-                                 late_reply_retries=2)).start()
+                                 late_reply_retries=2), isolation).start()
     try:
         deadline = time.monotonic() + WAIT_S
         while True:  # the servo process answers "not connected" until it has configured it

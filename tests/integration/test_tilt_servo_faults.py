@@ -9,6 +9,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Literal
 
 import pytest
 
@@ -155,9 +156,10 @@ def _first_cycle(servo: TiltServo) -> ServoState:
     return first
 
 
+@pytest.mark.parametrize("isolation", ["process", "inline"])
 @pytest.mark.parametrize("retries", [2, 0])
 def test_that_a_lockstep_cycle_of_a_healthy_servo_is_asked_again_before_a_lost_reply_is_a_fault(
-        tmp_path: Path, retries: int) -> None:
+        tmp_path: Path, retries: int, isolation: Literal["process", "inline"]) -> None:
     """Lockstep cycles (``serve: on_request``) with ``late_reply_retries``: a servo that answered
     its last cycle is asked again after a lost reply (an emulated servo starved by a loaded
     host is late, not faulty); one already in fault is not (its retries cost one timeout)."""
@@ -166,7 +168,7 @@ def test_that_a_lockstep_cycle_of_a_healthy_servo_is_asked_again_before_a_lost_r
                        link_path=tmp_path / "tilt-servo", drive_clock=True)
     cfg = TiltServoConfig(uri=f"pty://{emu.path}?id=1", serve="on_request",
                           rate_limit_goal=False, late_reply_retries=retries)
-    with emu, TiltServo(cfg) as servo:
+    with emu, TiltServo(cfg, isolation) as servo:
         first = _first_cycle(servo)
         # Test 1: one reply lost
         emu.set_fault(Fault.SILENT, replies=1)
@@ -193,8 +195,9 @@ def test_that_a_lockstep_cycle_of_a_healthy_servo_is_asked_again_before_a_lost_r
         assert isinstance(again, ServoState) and again.ok
 
 
+@pytest.mark.parametrize("isolation", ["process", "inline"])
 def test_that_a_lockstep_cycle_read_late_is_this_cycles_measurement_not_stale(
-        tmp_path: Path) -> None:
+        tmp_path: Path, isolation: Literal["process", "inline"]) -> None:
     """A lockstep loop descheduled between the servo process's answer and its own read (100 ms
     and more on a loaded host) still has this cycle's measurement: fresh, not STALE. What it
     reads later, outside a cycle, ages on the wall clock as before."""
@@ -202,7 +205,7 @@ def test_that_a_lockstep_cycle_read_late_is_this_cycles_measurement_not_stale(
                        link_path=tmp_path / "tilt-servo", drive_clock=True)
     cfg = TiltServoConfig(uri=f"pty://{emu.path}?id=1", serve="on_request",
                           rate_limit_goal=False)
-    with emu, TiltServo(cfg) as servo:
+    with emu, TiltServo(cfg, isolation) as servo:
         first = _first_cycle(servo)
         # Test: the cycle is answered at once; the loop reads it 0.3 s later (a descheduled
         # process: the sleep stands for the host, not for a timing assumption)
@@ -212,4 +215,40 @@ def test_that_a_lockstep_cycle_read_late_is_this_cycles_measurement_not_stale(
         # Assert
         assert state.health is ServoHealth.OK and state.seq == first.seq + 1
         assert state.age_s == 0.0
-        assert servo.latest().health is ServoHealth.STALE  # outside a cycle: the wall clock
+        # outside a cycle it ages on the wall clock (inline, the measurement is stamped when
+        # its reply is taken: the finish above)
+        time.sleep(3 * cfg.stale_after_s)
+        assert servo.latest().health is ServoHealth.STALE
+
+
+def test_that_an_inline_servo_unplugged_is_disconnected_then_configured_again(
+        tmp_path: Path) -> None:
+    """The inline servo (a lockstep flight's: the SDK in the loop's thread) meets an unplugged
+    port as the servo process does: the cycle fails, the health says DISCONNECTED with the
+    last tilt kept, requests answer "not connected", and once the port is back (and the
+    reconnect period has passed) the next cycle configures it again and measures."""
+    emu = EmulatedMX28(BenchVehicle(max_tilt_rate_rad_s=100 * DEG), lock=threading.Lock(),
+                       link_path=tmp_path / "tilt-servo", drive_clock=True)
+    cfg = TiltServoConfig(uri=f"pty://{emu.path}?id=1", serve="on_request",
+                          rate_limit_goal=False, late_reply_retries=2)
+    with emu, TiltServo(cfg, "inline") as servo:
+        first = _first_cycle(servo)
+        assert first.reconnects == 1
+        # Test 1: unplugged
+        emu.unplug()
+        assert isinstance(_cycle_or_error(servo), ServoCommError)
+        lost = servo.latest()
+        assert lost.health is ServoHealth.DISCONNECTED
+        assert lost.tilt_rad == first.tilt_rad  # the last measurement is kept
+        with pytest.raises(ServoCommError, match="not connected"):
+            servo.home(at_tilt_rad=0.0, timeout_s=WAIT_S)
+        # Test 2: back; cycles answer "not connected" until the reconnect is due, then measure
+        emu.replug()
+        back = _first_cycle(servo)
+        assert back.reconnects == 2 and back.seq > first.seq
+        assert servo.probe(timeout_s=WAIT_S).is_mx28_p1
+
+
+def test_that_an_inline_servo_is_served_on_request_only(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="on request only"):
+        TiltServo(TiltServoConfig(uri=f"pty://{tmp_path}/x?id=1"), "inline")
