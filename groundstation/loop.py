@@ -307,7 +307,23 @@ class FlightLoop:
                 t0_s = 0.0 if opts.lockstep else t_ns * 1e-9
             t_s = t_ns * 1e-9 - t0_s
 
-            # 2. newest pose and servo measurement
+            # 2. servo measurement and newest pose
+            # a faulted servo is retried at 2 Hz only (each failed cycle costs a timeout)
+            sync_every = opts.servo_sync_every if servo_health is not ServoHealth.FAULT \
+                else 250
+            servo_cycle = opts.lockstep and n % sync_every == 0
+            if servo_cycle:
+                # Lockstep: the servo answers on its bus while this tick computes (the READ
+                # goes out first thing, its reply is taken before `w`: the simulated time
+                # stands still until then); the measurement is used from the next tick on,
+                # as a free-running servo's would be.
+                try:
+                    self.tilt.begin_cycle()
+                except Exception as exc:  # a servo fault is a health state, not a crash
+                    servo_cycle = False
+                    servo_state = self._servo_sync_failed(exc)
+            elif not opts.lockstep:
+                servo_state = self.tilt.latest()
             if opts.lockstep:
                 self.pose.poll()
             pose = self.pose.latest()
@@ -322,22 +338,6 @@ class FlightLoop:
                         self._reseeds.append(cap_s)  # MoCap refused, then taken as truth
                     last_pose_t_s = cap_s
                     self._counters["poses_fused"] += 1
-            # a faulted servo is retried at 2 Hz only (each failed cycle costs a timeout)
-            sync_every = opts.servo_sync_every if servo_health is not ServoHealth.FAULT \
-                else 250
-            servo_cycle = opts.lockstep and n % sync_every == 0
-            if servo_cycle:
-                # Lockstep: the servo answers on its bus while this tick computes (the READ
-                # goes out here, its reply is taken before `w`: the simulated time stands
-                # still until then); the measurement is used from the next tick on, as a
-                # free-running servo's would be.
-                try:
-                    self.tilt.begin_cycle()
-                except Exception as exc:  # a servo fault is a health state, not a crash
-                    servo_cycle = False
-                    servo_state = self._servo_sync_failed(exc)
-            elif not opts.lockstep:
-                servo_state = self.tilt.latest()
             servo_health = _servo_health(servo_state)
             if servo_state is not None and math.isfinite(servo_state.tilt_rad):
                 alpha = min(max(servo_state.tilt_rad, 0.0), self.params.tilt.max_tilt_rad)
