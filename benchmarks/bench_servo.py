@@ -8,6 +8,10 @@
    TiltServo in its own process (the design), and with the SDK in a thread of the loop's
    process (what the process avoids: the SDK busy-polls holding the GIL).
 3. Fault detection latency: the emulated servo stops answering -> ``latest().health`` leaves OK.
+4. A lockstep servo cycle (``serve: on_request``): ``begin_cycle``, the tick's work (a fixed
+   ~60 us of numerics, what a lockstep tick computes between the two), ``finish_cycle``; what
+   the cycle adds to the tick, served by the servo process (baseline) and inline (the SDK in
+   the loop's thread, split around the work: what lockstep flights use), interleaved rounds.
 
 Run: ``python benchmarks/bench_servo.py [--seconds 6 --rounds 3]``. Numbers vary with machine load.
 """
@@ -22,12 +26,13 @@ import threading
 import time
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
 from drivers.dynamixel import ServoHealth, TiltServo, TiltServoConfig
 from drivers.dynamixel.control_table import Reg
+from drivers.realtime import hold_cpu_latency, release_cpu_latency
 from sim_backend.emulators.dynamixel_p1 import EmulatedMX28, Fault, serve_bench_servo
 from sim_backend.vehicle import BenchVehicle
 
@@ -202,6 +207,70 @@ def fault_detection(trials: int) -> None:
               f"p99 {pct(lat, 99):.1f} ms  max {lat.max():.1f} ms  (n={trials}, target 100 ms)")
 
 
+def _work_us(target_us: float) -> Any:
+    """A fixed piece of numerics taking about ``target_us`` (calibrated here, once)."""
+    a = np.random.default_rng(1).random((6, 6))
+
+    def work(k: int) -> None:
+        for _ in range(k):
+            a @ a
+
+    k = 1
+    while True:
+        t0 = time.perf_counter_ns()
+        work(k)
+        if time.perf_counter_ns() - t0 >= target_us * 1e3:
+            return lambda: work(k)
+        k *= 2 if k < 4 else 1
+        k += 1
+
+
+def lockstep_cycles(link: Path, cycles: int, rounds: int) -> None:
+    work = _work_us(60.0)
+    base = np.array([_timed_ns(work) for _ in range(500)]) / 1e3
+    samples: dict[str, list[float]] = {"process": [], "inline": []}
+    isolations: tuple[Literal["process", "inline"], ...] = ("process", "inline")
+    for _ in range(rounds):
+        for isolation in isolations:
+            cfg = TiltServoConfig(uri=f"pty://{link}?id=1", serve="on_request",
+                                  rate_limit_goal=False, late_reply_retries=2)
+            servo = TiltServo(cfg, isolation).start()
+            try:
+                deadline = time.monotonic() + 20.0
+                while True:  # "not connected" until configured
+                    try:
+                        servo.sync_cycle(5.0)
+                        break
+                    except Exception:
+                        if time.monotonic() > deadline:
+                            raise
+                        time.sleep(0.05)
+                for _ in range(cycles // rounds):
+                    t0 = time.perf_counter_ns()
+                    servo.begin_cycle()
+                    work()
+                    servo.finish_cycle(5.0)
+                    samples[isolation].append((time.perf_counter_ns() - t0) / 1e3)
+                    time.sleep(0.002)  # the other ticks of the servo period
+            finally:
+                servo.stop()
+    work_us = float(np.median(base))
+    print(f"  the work alone: median {work_us:6.1f} us")
+    proc = np.array(samples["process"])
+    for name in ("process", "inline"):
+        v = np.array(samples[name])
+        added = np.median(v) - work_us
+        print(f"  {name:8} begin + work + finish: median {np.median(v):6.1f} us  p99 "
+              f"{pct(v, 99):7.1f} us  added to the tick {added:6.1f} us  "
+              f"ratio to process {np.median(v) / np.median(proc):4.2f}")
+
+
+def _timed_ns(fn: Any) -> int:
+    t0 = time.perf_counter_ns()
+    fn()
+    return time.perf_counter_ns() - t0
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=6.0, help="per loop phase, in total")
@@ -216,6 +285,13 @@ def main() -> None:
             bus_cycle(link, args.cycles)
             print("2. 500 Hz dummy loop, same run")
             loop_phases(link, args.seconds, args.rounds, silent)
+            # as a lockstep flight runs it: the CPUs held out of deep idle (drivers.realtime)
+            held = hold_cpu_latency()
+            print(f"4. a lockstep servo cycle around the tick's work, same run ({held})")
+            try:
+                lockstep_cycles(link, args.cycles, args.rounds)
+            finally:
+                release_cpu_latency()
         finally:
             stop.set()
             proc.join(5.0)

@@ -25,7 +25,8 @@ anyway, at a fixed simulated time, so the SDK runs in the loop's thread, split i
 goal write and the READ request at :meth:`TiltServo.begin_cycle`, the reply at
 :meth:`TiltServo.finish_cycle`; the servo answers while the tick computes. Two process hops
 saved per cycle: in an Exp. 1 lockstep flight a cycle cost the tick 39 + 491 us (begin +
-finish, medians) through the servo process, 62 + 117 us inline; the flight ran ~1.3x faster.
+finish, medians) through the servo process, 37 + 69 us inline (the READ sent first thing in
+the tick); the flight ran ~1.3x faster. ``benchmarks/bench_servo.py`` (4.) compares the two.
 
 Configuration on every (re)connect: model 29 (an MX-28 with P2 firmware reports 30: refused),
 firmware >= ``min_firmware``, SRL 2, Return Delay 0, multi-turn (CW = CCW limit = 4095), Moving
