@@ -313,12 +313,17 @@ class FlightLoop:
                 else 250
             servo_cycle = opts.lockstep and n % sync_every == 0
             if servo_cycle:
+                # a wall-clock wait, as the simulated time stands still: a healthy servo gets
+                # LOCKSTEP_SERVO_WAIT_S (a loaded host must not fake a fault), one already
+                # faulted the short wait of its 2 Hz retries
+                servo_wait_s = 0.3 if _servo_health(servo_state) is ServoHealth.FAULT \
+                    else LOCKSTEP_SERVO_WAIT_S
                 # Lockstep: the servo answers on its bus while this tick computes (the READ
                 # goes out first thing, its reply is taken before `w`: the simulated time
                 # stands still until then); the measurement is used from the next tick on,
                 # as a free-running servo's would be.
                 try:
-                    self.tilt.begin_cycle()
+                    self.tilt.begin_cycle(servo_wait_s)
                 except Exception as exc:  # a servo fault is a health state, not a crash
                     servo_cycle = False
                     servo_state = self._servo_sync_failed(exc)
@@ -452,11 +457,7 @@ class FlightLoop:
                                           force_ext_w_n=force_ext)
             if servo_cycle:  # before set_tilt: the cycle wrote the previous goal
                 try:
-                    # a wall-clock wait, as the simulated time stands still: a healthy servo
-                    # gets LOCKSTEP_SERVO_WAIT_S (a loaded host must not fake a fault), one
-                    # already faulted the short wait of its 2 Hz retries
-                    servo_state = self.tilt.finish_cycle(
-                        0.3 if servo_health is ServoHealth.FAULT else LOCKSTEP_SERVO_WAIT_S)
+                    servo_state = self.tilt.finish_cycle(servo_wait_s)
                 except Exception as exc:
                     servo_state = self._servo_sync_failed(exc)
             if tick is not None and control_tick < 0:

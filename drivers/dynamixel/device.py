@@ -401,8 +401,18 @@ class _Link:
         self.target = parse_servo_uri(uri)
         self.sdk = _sdk()
         self.sdk.port_handler.LATENCY_TIMER = latency_timer_ms
+        self.latency_timer_ms = latency_timer_ms
         self.ph = self.sdk.PacketHandler(1.0)  # the float: "1.0" would be Protocol 2.0
         self.port: Any = None
+
+    def cap_reply_wait(self, wait_s: float | None) -> None:
+        """Wait at most ``wait_s`` for each reply from now on (None: the configured timeout,
+        2 x the latency timer + 2 ms). The SDK reads its timeout from a module setting when a
+        request goes out: one servo per process (the servo process, or the loop's thread)."""
+        timer_ms = self.latency_timer_ms
+        if wait_s is not None:
+            timer_ms = min(timer_ms, max((wait_s * 1000.0 - 2.0) / 2.0, 1.0))
+        self.sdk.port_handler.LATENCY_TIMER = timer_ms
 
     @property
     def is_open(self) -> bool:
@@ -1129,16 +1139,20 @@ class TiltServo:
         For ``serve="on_request"`` (lockstep flights): the caller blocks for one bus round trip
         (about 1.3 ms), so the exchange happens at a fixed simulated time. Raises
         :class:`ServoCommError` if the servo process does not answer within ``timeout_s``."""
-        self.begin_cycle()
+        self.begin_cycle(timeout_s)
         return self.finish_cycle(timeout_s)
 
-    def begin_cycle(self) -> None:
+    def begin_cycle(self, timeout_s: float | None = None) -> None:
         """Start one service cycle and return at once; :meth:`finish_cycle` waits for it.
 
         Lets a lockstep loop compute while the servo process talks to the bus (the bus
-        exchange happens between the two calls: keep the simulated time fixed there)."""
+        exchange happens between the two calls: keep the simulated time fixed there).
+        ``timeout_s``: inline, the longest each reply of this cycle is waited for, if shorter
+        than the SDK's timeout (a servo already in fault is asked briefly); the servo process
+        does not use it (the wait is :meth:`finish_cycle`'s)."""
         if self._inline is not None:
             with self._request_lock:
+                self._inline.link.cap_reply_wait(timeout_s)
                 self._inline_pending = self._begin_inline_cycle()
             return
         with self._request_lock:
@@ -1172,20 +1186,23 @@ class TiltServo:
     def finish_cycle(self, timeout_s: float) -> ServoState:
         """Wait for the cycle of :meth:`begin_cycle`; its measurement (``ServoCommError`` if the
         servo process does not answer within ``timeout_s``). Inline, the SDK's own reply
-        timeout bounds each attempt (``timeout_s`` is not used)."""
+        timeout (capped by :meth:`begin_cycle`'s ``timeout_s``) bounds each attempt."""
         if self._inline is not None:
             with self._request_lock:
                 pending, self._inline_pending = self._inline_pending, None
                 if pending is None:
                     raise ServoError(self.config.uri, "no service cycle pending")
-                if isinstance(pending, ServoCommError):
-                    raise pending  # not connected: nothing to recover from
                 worker = self._inline
                 try:
-                    worker.requested_cycle(pending)
-                except ServoCommError as exc:
-                    worker.fail(exc)
-                    raise
+                    if isinstance(pending, ServoCommError):
+                        raise pending  # not connected: nothing to recover from
+                    try:
+                        worker.requested_cycle(pending)
+                    except ServoCommError as exc:
+                        worker.fail(exc)
+                        raise
+                finally:
+                    worker.link.cap_reply_wait(None)
             return self.latest(as_measured=True)
         with self._request_lock:
             request_id, self._cycle_id = self._cycle_id, None

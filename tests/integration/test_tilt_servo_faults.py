@@ -252,3 +252,32 @@ def test_that_an_inline_servo_unplugged_is_disconnected_then_configured_again(
 def test_that_an_inline_servo_is_served_on_request_only(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="on request only"):
         TiltServo(TiltServoConfig(uri=f"pty://{tmp_path}/x?id=1"), "inline")
+
+
+def test_that_an_inline_cycle_waits_for_its_replies_no_longer_than_asked(tmp_path: Path) -> None:
+    """A lockstep loop asks a servo already in fault briefly (0.3 s, not the SDK's 0.5 s
+    timeout of a lockstep servo): inline, begin_cycle's timeout caps each reply's wait of that
+    cycle, and the next cycle waits as configured again."""
+    emu = EmulatedMX28(BenchVehicle(max_tilt_rate_rad_s=100 * DEG), lock=threading.Lock(),
+                       link_path=tmp_path / "tilt-servo", drive_clock=True)
+    cfg = TiltServoConfig(uri=f"pty://{emu.path}?id=1", serve="on_request",
+                          rate_limit_goal=False, sdk_latency_timer_ms=250.0)
+    with emu, TiltServo(cfg, "inline") as servo:
+        _first_cycle(servo)
+        link = servo._inline.link  # type: ignore[union-attr]
+        # Test 1: capped at 50 ms: the READ's reply wait (SDK: its bytes' time + 2 x timer + 2)
+        servo.begin_cycle(0.05)
+        capped_ms = link.port.packet_timeout
+        assert servo.finish_cycle(WAIT_S).ok
+        # Test 2: no cap: the configured 2 x 250 + 2 ms
+        servo.begin_cycle()
+        uncapped_ms = link.port.packet_timeout
+        assert servo.finish_cycle(WAIT_S).ok
+        # Test 3: a silent servo asked with the cap fails, and the cap ends with the cycle
+        emu.set_fault(Fault.SILENT, replies=1)
+        servo.begin_cycle(0.05)
+        with pytest.raises(ServoCommError):
+            servo.finish_cycle(WAIT_S)
+        assert link.sdk.port_handler.LATENCY_TIMER == 250.0
+    assert 50.0 <= capped_ms < 51.0
+    assert 502.0 <= uncapped_ms < 503.0
