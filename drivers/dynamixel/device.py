@@ -864,8 +864,9 @@ class _Worker:
         return True
 
     def try_connect(self) -> bool:
-        """One attempt to open and configure the servo; a failure is published (and the next
-        attempt scheduled), never raised. True when configured."""
+        """One attempt to open and configure the servo; a failure is published, never raised
+        (a lost port or a refused servo is tried again after ``reconnect_period_s``, a missing
+        or garbled reply after the resync wait). True when configured."""
         try:
             self.connect()
         except ServoIdentityError as exc:
