@@ -422,7 +422,8 @@ class FlightSession:
             ukf = Ukf(_estimator_config(cfg, self.params))  # before the IMU streams
             # The Flight-Ctrl last: once its IMU streams, an emulated board waits for `w` only
             # for its lockstep grace (then free-runs, and a run is no longer repeatable), so
-            # nothing slow (the servo process, the MoCap handshake) may come after it.
+            # nothing slow (the servo's start and configuration, the MoCap handshake) may come
+            # after it.
             fc = _open_device("flight-ctrl", fc_uri, lambda: FlightCtrl.open(
                 fc_uri, FlightCtrlConfig(imu_rate_hz=backend.imu_rate_hz)))
             ident = _open_device("flight-ctrl", fc_uri, fc.connect)

@@ -2,7 +2,8 @@
 real pseudo-terminal as its controlling terminal.
 
 - Ctrl-C typed into the terminal: the line discipline sends SIGINT to the whole foreground
-  process group (the ground station, its telemetry and servo processes);
+  process group (the ground station and its telemetry process; a realtime flight's servo
+  process too: a lockstep flight serves the servo in its own thread);
 - SIGTERM to the process group (``timeout``, ``kill -TERM -PGID``; systemd signals every process
   of the unit);
 - SIGHUP: the terminal closes (the master side of the pty is closed).
@@ -61,16 +62,18 @@ def _processes_mentioning(text: str) -> list[int]:
 
 
 class TerminalFlight:
-    """`fasthex fly` on a lockstep session hovering for a minute, in a pty of its own."""
+    """`fasthex fly` on a lockstep session hovering for a minute, in a pty of its own
+    (``clock="realtime"``: the same session on the wall clock, its servo in a process)."""
 
-    def __init__(self, tmp_path: Path, name: str) -> None:
+    def __init__(self, tmp_path: Path, name: str, clock: str = "lockstep") -> None:
         self.tmp = tmp_path / "tmp"  # TMPDIR of the flight: its session dir lands here
         self.tmp.mkdir()
         (tmp_path / "short-hover.yaml").write_text(
             SHORT_MISSION.replace("duration_s: 4.0", "duration_s: 60.0"))
         session = tmp_path / f"{name}.yaml"
         session.write_text(SESSION.format(seed=2, faults="", corrupt=0.0, zmax=2.5,
-                                          servo_action="hold"))
+                                          servo_action="hold").replace(
+            "clock: lockstep", f"clock: {clock}"))
         self.record = tmp_path / f"{name}.fhr"
         self.events = Path(str(self.record) + ".events.txt")
         self.master, slave = pty.openpty()
@@ -146,6 +149,22 @@ def test_that_ctrl_c_typed_in_the_terminal_lands(tmp_path: Path) -> None:
     flight.type_ctrl_c()
     assert flight.wait() == 1  # landed early: not the planned end
     _assert_landed(flight, "SIGINT")
+    flight.assert_nothing_left()
+
+
+def test_that_ctrl_c_in_a_realtime_flight_lands_and_its_servo_process_holds_on(
+        tmp_path: Path) -> None:
+    """A realtime flight serves its servo from a process of its own, in the same foreground
+    group: Ctrl-C reaches it too, and it must ignore it (the flight state machine lands; the
+    servo keeps answering until it is told to stop), or the landing becomes a servo fault."""
+    flight = TerminalFlight(tmp_path, "ctrl-c-realtime", clock="realtime")
+    flight.wait_airborne()
+    flight.type_ctrl_c()
+    assert flight.wait() == 1
+    _assert_landed(flight, "SIGINT")
+    events = flight.events.read_text()
+    assert "servo fault" not in events, events
+    assert "faults:        none" in flight.output.decode(errors="replace")
     flight.assert_nothing_left()
 
 

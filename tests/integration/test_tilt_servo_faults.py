@@ -146,11 +146,12 @@ def _cycle_or_error(servo: TiltServo) -> ServoState | ServoCommError:
 
 
 def _first_cycle(servo: TiltServo) -> ServoState:
-    """The first cycle on request: "not connected" until the servo process has the port."""
+    """The first cycle on request: "not connected" until the servo is configured (the servo
+    process has started its SDK, or the inline worker has connected)."""
     deadline = time.monotonic() + WAIT_S
     first = _cycle_or_error(servo)
     while not isinstance(first, ServoState) and time.monotonic() < deadline:
-        time.sleep(0.05)  # bounded: the servo process starts its SDK
+        time.sleep(0.05)  # bounded: the servo process starts its SDK (inline: no wait)
         first = _cycle_or_error(servo)
     assert isinstance(first, ServoState) and first.ok
     return first
