@@ -188,11 +188,9 @@ class FrameTransform:
         """Inverse of :meth:`to_world`: world body pose -> (MoCap position, wire quat x,y,z,w)."""
         q_w_rb = quat_mul(quat_normalize(q_wb), quat_conj(self._q_rb_b))
         off = quat_rotate(q_w_rb, self._o)
-        p_w = (pos_w_m[0] - off[0] - self._t[0], pos_w_m[1] - off[1] - self._t[1],
-               pos_w_m[2] - off[2] - self._t[2])
-        p_c = quat_rotate(self._q_mw, p_w)
+        # the rigid body's origin is a point: the body origin less its offset
+        p_m = self.point_to_mocap((pos_w_m[0] - off[0], pos_w_m[1] - off[1],
+                                   pos_w_m[2] - off[2]))
         q_c = quat_mul(self._q_mw, q_w_rb)
-        p_raw = quat_rotate(self._c_inv, p_c)
         q_raw = quat_normalize(quat_mul(quat_mul(self._c_inv, q_c), self._c))
-        s = 1.0 / self._scale
-        return (p_raw[0] * s, p_raw[1] * s, p_raw[2] * s), wxyz_to_xyzw(q_raw)
+        return p_m, wxyz_to_xyzw(q_raw)
