@@ -863,6 +863,12 @@ class _Worker:
             return False
         return True
 
+    def ready(self) -> bool:
+        """Configured, or configured by the connection attempt made now if one is due (the
+        inline owner's check before each request: the servo process's loop does the same)."""
+        return self.configured or (time.monotonic() >= self.next_reconnect
+                                   and self.try_connect())
+
     def try_connect(self) -> bool:
         """One attempt to open and configure the servo; a failure is published, never raised
         (a lost port or a refused servo is tried again after ``reconnect_period_s``, a missing
@@ -1105,8 +1111,7 @@ class TiltServo:
         (``_Worker.fail``) and raised."""
         worker = self._inline
         assert worker is not None
-        if not worker.configured and (time.monotonic() < worker.next_reconnect
-                                      or not worker.try_connect()):
+        if not worker.ready():
             raise ServoCommError(self.config.uri, f"{what}: servo not connected")
         try:
             return fn(worker)
@@ -1166,8 +1171,7 @@ class TiltServo:
         the "not connected" answer of a servo that could not be configured."""
         worker = self._inline
         assert worker is not None
-        if not worker.configured and (time.monotonic() < worker.next_reconnect
-                                      or not worker.try_connect()):
+        if not worker.ready():
             return ServoCommError(self.config.uri, "cycle: servo not connected")
         try:
             errors = worker.cycle_start()
