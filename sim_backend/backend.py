@@ -145,15 +145,24 @@ class TruthLog:
 
 
 class _Publisher(Protocol):
-    def publish_due(self, now_s: float) -> int: ...
+    def publish_due(self, now_s: float, defer: bool = False) -> int: ...
+
+    def capture_deferred(self) -> int: ...
 
 
 class _SteppedVehicle:
     """The simulator as the emulators see it: each advance also publishes the MoCap frames due
-    at the new time. Implements :class:`EmulatedVehicle` by delegation."""
+    at the new time. Implements :class:`EmulatedVehicle` by delegation.
 
-    def __init__(self, sim: FastHexSimulator) -> None:
+    With ``defer_captures`` (lockstep) a frame due at an advance is captured at :meth:`settle`,
+    which the emulated board calls once its reply is on the wire (the capture then runs while
+    the ground station computes, off the lockstep round trip), or at the next advance, before
+    the vehicle moves: either way at the pose of its capture time.
+    """
+
+    def __init__(self, sim: FastHexSimulator, defer_captures: bool = False) -> None:
         self.sim = sim
+        self.defer_captures = defer_captures
         self.on_advance: list[_Publisher] = []
         #: (simulated time, action) pairs, run once when the time is reached
         self.scheduled: list[tuple[float, Callable[[], None]]] = []
@@ -167,12 +176,19 @@ class _SteppedVehicle:
         return self.sim.now_s()
 
     def advance(self, dt_s: float) -> None:
+        self.settle()
         self.sim.advance(dt_s)
         now = self.sim.now_s()
         while self.scheduled and self.scheduled[0][0] <= now:
             self.scheduled.pop(0)[1]()
         for publisher in self.on_advance:
-            publisher.publish_due(now)
+            publisher.publish_due(now, self.defer_captures)
+
+    def settle(self) -> None:
+        """Run the work deferred from the last advance (the MoCap captures)."""
+        if self.defer_captures:
+            for publisher in self.on_advance:
+                publisher.capture_deferred()
 
     def command_rotor_speeds_hz(self, speeds_hz: Sequence[float]) -> None:
         self.sim.command_rotor_speeds_hz(speeds_hz)
@@ -222,12 +238,12 @@ class EmulatedVehicleBackend:
                                     p, seed=opts.seed, start_pos_w_m=opts.start_pos_w_m,
                                     plant=None if sc is None else sc.plant,
                                     disturbances=() if sc is None else sc.disturbances)
-        self.vehicle = _SteppedVehicle(self.sim)
+        self.vehicle = _SteppedVehicle(self.sim, defer_captures=opts.clock == "lockstep")
         assert isinstance(self.vehicle, EmulatedVehicle)
         self.lock = threading.Lock()
         link = opts.link_dir
         self.flight_ctrl = EmulatedFlightCtrl(
-            self.vehicle, lock=self.lock,
+            self.vehicle, lock=self.lock, after_output=self.vehicle.settle,
             link_path=link / "flight-ctrl" if link else None,
             config=FlightCtrlEmulatorConfig(clock=opts.clock, faults=opts.wire_faults,
                                             watchdog_s=opts.watchdog_s,

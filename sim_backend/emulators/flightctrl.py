@@ -213,9 +213,13 @@ class EmulatedFlightCtrl:
 
     def __init__(self, vehicle: EmulatedVehicle, *, lock: threading.Lock | None = None,
                  link_path: str | Path | None = None,
-                 config: FlightCtrlEmulatorConfig | None = None) -> None:
+                 config: FlightCtrlEmulatorConfig | None = None,
+                 after_output: Callable[[], None] | None = None) -> None:
         self.config = config or FlightCtrlEmulatorConfig()
         self._vehicle = vehicle
+        #: called (under ``lock``) once each iteration's output is written: work the vehicle
+        #: deferred until the reply is on its way (the backend's MoCap captures in lockstep)
+        self._after_output = after_output
         self._lock: contextlib.AbstractContextManager[object] = (
             lock if lock is not None else contextlib.nullcontext())
         self._pty = PtyEndpoint(link_path)
@@ -771,10 +775,14 @@ class EmulatedFlightCtrl:
 
     def _flush_out(self) -> None:
         """Write what this iteration sent, in one system call (a pty write costs ~6 us: a
-        step that emits an IMU sample and six motor frames would pay seven)."""
+        step that emits an IMU sample and six motor frames would pay seven); then the
+        vehicle's deferred work (``after_output``)."""
         if self._out:
             data, self._out = bytes(self._out), bytearray()
             self._write(data)
+        if self._after_output is not None:
+            with self._lock:
+                self._after_output()
 
     def _flush_tx(self, now: float) -> None:
         while self._tx_queue and self._tx_queue[0][0] <= now:

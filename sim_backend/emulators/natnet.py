@@ -428,20 +428,27 @@ class NatNetServer:
             self._reply(packet, addr)
             self.counters.frames_sent += 1
 
-    def publish_due(self, now_s: float) -> int:
+    def publish_due(self, now_s: float, defer: bool = False) -> int:
         """Capture every frame due by ``now_s`` (server time, s) and send those whose
         transmit time (capture + latency) has come. Returns the number of frames captured.
 
         The first call starts the frame schedule at ``now_s``. In lockstep the pose of a frame
         due between two calls is the vehicle's at ``now_s``, and its mid-exposure stamp is
-        ``now_s``: the stamp always matches the pose in the packet.
+        ``now_s``: the stamp always matches the pose in the packet. ``defer``: a frame sent
+        after a latency is captured at :meth:`capture_deferred` instead (lockstep, see
+        :mod:`sim_backend.emulators.schedule`).
         """
         with self._stream_lock:
             captured, due = self._schedule.due(now_s, self.config.latency_s,
-                                               lambda: self._capture(now_s))
+                                               lambda: self._capture(now_s), defer)
         for packet in due:
             self._send_frame(packet)
         return captured
+
+    def capture_deferred(self) -> int:
+        """Capture the frames ``publish_due(..., defer=True)`` left; returns how many."""
+        with self._stream_lock:
+            return self._schedule.capture_deferred()
 
     def next_event_s(self) -> float:
         """Server time of the next capture or transmission."""

@@ -502,20 +502,26 @@ class QtmServer:
             if ok:
                 self.counters.frames_sent += 1
 
-    def publish_due(self, now_s: float) -> int:
+    def publish_due(self, now_s: float, defer: bool = False) -> int:
         """Capture every frame due by ``now_s`` (emulator time, s) and send those whose send
         time (capture + latency) has come. Returns the number of frames captured. In lockstep a
-        frame due between two calls carries the vehicle's pose and timestamp at ``now_s``."""
+        frame due between two calls carries the vehicle's pose and timestamp at ``now_s``.
+        ``defer``: as :meth:`NatNetServer.publish_due`."""
         def capture() -> tuple[int, int, tuple[qtm.SixDofBody, ...]]:
             bodies = self._capture()
             self._last = (self.server_timestamp_us(now_s), self._frame_number, bodies)
             return self._last
 
         with self._stream_lock:
-            captured, due = self._schedule.due(now_s, self.config.latency_s, capture)
+            captured, due = self._schedule.due(now_s, self.config.latency_s, capture, defer)
         for ts, number, bodies in due:
             self._send_frame(ts, number, bodies)
         return captured
+
+    def capture_deferred(self) -> int:
+        """Capture the frames ``publish_due(..., defer=True)`` left; returns how many."""
+        with self._stream_lock:
+            return self._schedule.capture_deferred()
 
     def next_event_s(self) -> float:
         with self._stream_lock:
