@@ -67,6 +67,7 @@ from drivers.mocap.pose import (
     StreamMonitor,
     TrackingStatus,
     UnknownBodyError,
+    WaitingSockets,
 )
 
 log = logging.getLogger(__name__)
@@ -130,6 +131,7 @@ class NatNetClient(FrameWaits):
         self._clock = clock
         self._transform = FrameTransform(config.frames)
         self.monitor = StreamMonitor(clock)
+        self._waiting = WaitingSockets()  # poll(): is anything there at all
         self._cond = threading.Condition()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -203,8 +205,11 @@ class NatNetClient(FrameWaits):
             if now >= self._next_keepalive:
                 self._send(natnet.encode_keepalive())
                 self._next_keepalive = now + self.config.keepalive_period_s
+        socks = (self._cmd, self._data)
+        if not self._waiting.any(socks):
+            return 0
         handled = 0
-        for sock in (self._cmd, self._data):
+        for sock in socks:
             while sock is not None:
                 try:
                     data, addr = sock.recvfrom(65536)

@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import enum
 import math
+import select
+import socket
 import threading
 import time
 from collections import deque
@@ -258,6 +260,26 @@ class StreamMonitor:
                               self.invalid_samples, self.malformed_packets,
                               self.foreign_packets, rate, age, self._latency_s,
                               self.implausible_samples, *self._clock_est)
+
+
+class WaitingSockets:
+    """Whether any of a client's sockets has input waiting, in one ``poll(2)`` (~1 us) rather
+    than one failed non-blocking receive per socket (~2.3 us each, an exception apiece): a
+    lockstep loop polls its MoCap client every tick and finds a frame on one tick in five.
+    Registers the sockets again whenever the client's set of sockets changes (re-opened)."""
+
+    def __init__(self) -> None:
+        self._socks: tuple[socket.socket | None, ...] = ()
+        self._poll = select.poll()
+
+    def any(self, socks: tuple[socket.socket | None, ...]) -> bool:
+        if socks != self._socks:
+            self._poll = select.poll()
+            for s in socks:
+                if s is not None:
+                    self._poll.register(s, select.POLLIN)
+            self._socks = socks
+        return bool(self._poll.poll(0))
 
 
 class FrameWaits:

@@ -65,6 +65,7 @@ from drivers.mocap.pose import (
     StreamMonitor,
     TrackingStatus,
     UnknownBodyError,
+    WaitingSockets,
 )
 
 log = logging.getLogger(__name__)
@@ -122,6 +123,7 @@ class QtmClient(FrameWaits):
         self._clock = clock
         self._transform = FrameTransform(config.frames)
         self.monitor = StreamMonitor(clock)
+        self._waiting = WaitingSockets()  # poll(): is anything there at all
         self.server_clock = ClockSync()  # QTM's capture timestamps -> ours
         self._cond = threading.Condition()
         self._stop = threading.Event()
@@ -167,8 +169,10 @@ class QtmClient(FrameWaits):
         """Receive every packet already waiting, in the caller's thread; never blocks. Returns
         the number of TCP reads and datagrams handled. A broken connection is closed (and,
         without the receive thread, not re-opened)."""
-        handled = 0
         sock, udp = self._sock, self._udp
+        if not self._waiting.any((sock, udp)):
+            return 0
+        handled = 0
         while udp is not None:
             try:
                 data, addr = udp.recvfrom(65536)

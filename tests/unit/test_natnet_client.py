@@ -148,3 +148,31 @@ def test_that_a_server_of_an_unsupported_version_is_refused_by_name() -> None:
         with pytest.raises(MocapConnectError, match=r"NatNet \(2, 10\)"):
             NatNetClient(cfg).start()
         t.join(10.0)
+
+
+def test_that_waiting_sockets_tells_input_waiting_on_any_socket_and_follows_reopened_ones(
+        ) -> None:
+    from drivers.mocap.pose import WaitingSockets
+
+    # Fixture: two bound UDP sockets, as a client's command and data sockets
+    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(3)]
+    sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+            s.setblocking(False)
+        waiting = WaitingSockets()
+        pair = (socks[0], socks[1])
+        # Test / Assert: nothing sent; a datagram on the second; read, nothing again
+        assert not waiting.any(pair) and not waiting.any((None, None))
+        sender.sendto(b"x", socks[1].getsockname())
+        assert waiting.any(pair)
+        assert socks[1].recv(16) == b"x" and not waiting.any(pair)
+        # a re-opened data socket is watched, the old one no longer
+        sender.sendto(b"y", socks[1].getsockname())
+        sender.sendto(b"z", socks[2].getsockname())
+        assert waiting.any((socks[0], None)) is False
+        assert waiting.any((socks[0], socks[2]))
+    finally:
+        for s in (*socks, sender):
+            s.close()
