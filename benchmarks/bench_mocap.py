@@ -3,7 +3,8 @@
 Measured per call (``perf_counter_ns`` around each call, after a warm-up), for a frame as
 Motive sends it: 4 rigid bodies, a marker set of 4 markers per body and 16 labeled markers.
 
-- ``decode``: :func:`drivers.mocap.natnet.decode_message` alone;
+- ``decode``: :func:`drivers.mocap.natnet.decode_message` alone, and without building the
+  markers (``markers=False``, what the client asks for: it hands out rigid-body poses);
 - ``client``: the whole receive path of :class:`NatNetClient` for one datagram (decode,
   frame-number bookkeeping, axis/units conversion of every body, mailbox update);
 - baseline, same bytes, same process: the independent PyPI ``natnet`` parser
@@ -98,6 +99,8 @@ def main() -> None:
         vtxt = f"{version[0]}.{version[1]} ({len(wire)} B)"
         rows: list[tuple[str, Callable[[], object]]] = [
             ("decode_message", partial(natnet.decode_message, wire, version)),
+            ("decode, markers not built", partial(natnet.decode_message, wire, version,
+                                                  markers=False)),
             ("client receive path", partial(client._on_datagram, wire, server))]
         for what, fn in rows:
             med, p99 = stats(measure(fn, args.n))

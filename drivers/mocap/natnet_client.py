@@ -373,7 +373,8 @@ class NatNetClient(FrameWaits):
         if self._handshaking and data[:2] == _FRAME_ID:
             return  # its version may not be settled yet
         try:
-            msg = natnet.decode_message(data, self._version)
+            # markers are not built: the client hands out rigid-body poses only
+            msg = natnet.decode_message(data, self._version, markers=False)
         except natnet.NatNetDecodeError as exc:
             self.monitor.count_malformed()
             log.debug("%s: dropped malformed datagram: %s", self.config.name, exc)
