@@ -13,6 +13,8 @@ timeouts); the flights share the machine.
 
 from __future__ import annotations
 
+import json
+import os
 import signal
 import subprocess
 import sys
@@ -156,9 +158,12 @@ def _fly_lockstep(tmp_path: Path, name: str, faults: str = "",
     session.write_text(SESSION.format(seed=2, faults=faults, corrupt=0.0, zmax=2.5,
                                       servo_action="hold"))
     record = tmp_path / f"{name}.fhr"
+    tmp = tmp_path / "tmp"  # TMPDIR of the flight: its session dir lands here, even killed
+    tmp.mkdir()
     proc = subprocess.Popen([sys.executable, "-m", "groundstation", "fly", str(session),
                              "--record", str(record), "--quiet", "--rerun", "off"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, TMPDIR=str(tmp)))
     return proc, record
 
 
@@ -219,6 +224,10 @@ def test_that_a_killed_ground_station_is_seen_to_leave_the_streams_on(tmp_path: 
     # (the magnetometer stream is off in the driver's configuration)
     assert "motors stopped" in err
     assert f"closed with B, I, M on: {LEFT_ON}" in err, err
+    # the killed session could not remove its directory; the emulator left its note there
+    (session_dir,) = (tmp_path / "tmp").glob("fasthex-*")
+    note = json.loads((session_dir / "emulator-exit.json").read_text())
+    assert note["reason"] == "ground station gone" and note["motors_stopped"] is True
 
 
 @pytest.mark.exclusive  # a realtime board in this process, reply timeouts
