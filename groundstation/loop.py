@@ -427,8 +427,7 @@ class FlightLoop:
                              mocap_consistent=self._mocap_consistent(t_s),
                              servo_detail=_servo_detail(servo_state)
                              if servo_health is ServoHealth.FAULT else "")
-            if sm.state in FLYING:
-                extremes.add(h, gap_s, self.imu_rate_fraction)
+            flying = sm.state in FLYING  # the extremes of this tick, added after the send
             n_transitions = len(sm.transitions)
             directive = sm.update(t_s, h)
             # a failsafe in a planned landing stays LANDING but is a transition all the same
@@ -464,13 +463,17 @@ class FlightLoop:
                 control_tick = n
             if tick is not None and directive.motors_on:
                 spins = tick.cmd.spin_hz
-                if not directive.hold_tilt:
-                    self.tilt.set_tilt(tick.alpha_cmd_rad)
             elif directive.motors_on:
                 spins = (self.params.rotors.min_spin_hz,) * 6  # idle while spinning up
             self.imu.send_rotor_speeds_hz(spins)
             sent_ns = time.monotonic_ns()
             last_spins = spins
+            # after the send, what the motors need not wait for: the tilt goal (the servo
+            # takes it at its next cycle) and the health extremes
+            if tick is not None and directive.motors_on and not directive.hold_tilt:
+                self.tilt.set_tilt(tick.alpha_cmd_rad)
+            if flying:
+                extremes.add(h, gap_s, self.imu_rate_fraction)
             eta_f = 1.0
             if tick is not None:  # the commanded body force feeds the UKF's force observer
                 force_cmd_b, eta_f = self.computer.thrust_force_b(alpha, tick.cmd.thrusts_n)
