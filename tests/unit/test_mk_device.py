@@ -122,6 +122,24 @@ def test_that_wrong_lengths_and_out_of_range_values_never_reach_the_caller(
     assert (stats.malformed, stats.implausible) == (1, 1)
 
 
+def test_that_a_lone_imu_jump_is_dropped_and_three_in_a_row_are_taken_as_real(
+        link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
+    # Fixture: the default step limits (0.25 rad/s, 20 m/s^2 between samples: a corrupted
+    # byte of a frame without checksum, not a motion the vehicle can make in 2 ms)
+    fc, wire, clock = link
+    _push(fc, wire, clock, _imu(0), 0.0)
+    # Test: one sample 0.3 rad/s off, then back; then a step that persists
+    lone = _push(fc, wire, clock, _imu(1, gz=0.3), 2.0)
+    back = _push(fc, wire, clock, _imu(2), 4.0)
+    held = [_push(fc, wire, clock, _imu(3 + k, gz=0.3), 6.0 + 2.0 * k) for k in range(4)]
+    # Assert: the lone jump dropped; the persisting one dropped three times, then believed
+    # (body z is board -z here: the sign of the axes map)
+    assert lone is None and back is not None and back.seq == 2
+    assert held[:3] == [None, None, None]
+    assert held[3] is not None and held[3].gyro_rad_s[2] == pytest.approx(-0.3)
+    assert fc.link_stats().implausible == 4
+
+
 def test_that_the_imu_axes_map_board_to_body(
         link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
     fc, wire, clock = link
