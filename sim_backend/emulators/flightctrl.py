@@ -784,8 +784,11 @@ class EmulatedFlightCtrl:
             data, self._out = bytes(self._out), bytearray()
             self._write(data)
         if self._after_output is not None:
-            with self._lock:
-                self._after_output()
+            try:
+                with self._lock:
+                    self._after_output()
+            except Exception:  # the board keeps running, as after a failed input
+                log.exception("emulated Flight-Ctrl: the vehicle's deferred work failed")
 
     def _flush_tx(self, now: float) -> None:
         while self._tx_queue and self._tx_queue[0][0] <= now:

@@ -139,3 +139,30 @@ def test_that_the_lockstep_backend_captures_mocap_after_the_board_reply_with_the
                if e == "capture")
     poses = [np.frombuffer(p, np.uint8) for p in got]
     assert len({p.tobytes() for p in poses}) == len(poses)  # each frame a new capture
+
+
+def test_that_a_failing_deferred_capture_is_logged_and_the_board_keeps_stepping(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    # Fixture: the MoCap's capture fails once (a bug, a pose it cannot encode)
+    backend = _backend(tmp_path, "a")
+    capture = backend.mocap._capture
+    calls = [0]
+
+    def failing_once(t_s: float) -> bytes | None:
+        calls[0] += 1
+        if calls[0] == 2:
+            raise RuntimeError("capture failed")
+        return capture(t_s)
+
+    backend.mocap._capture = failing_once  # type: ignore[method-assign]
+    try:
+        # Test
+        packets, order = _fly(backend, 100)
+    finally:
+        backend.stop()
+    # Assert: logged; every step still answered (one board write per w, plus the stream's
+    # first sample), and the frames after the failed one still captured and sent
+    assert "deferred work failed" in caplog.text
+    assert order.count("write") == 101
+    # (all but the failed one sent, bar the newest, which may still wait out its latency)
+    assert len(packets) >= 15 and calls[0] - 1 - len(packets) in (0, 1)
