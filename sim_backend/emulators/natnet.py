@@ -19,7 +19,10 @@ Two ways to run it:
 - realtime: :meth:`NatNetServer.start` with ``realtime=True`` paces captures on the wall
   clock in its own thread;
 - lockstep: the emulated backend calls :meth:`NatNetServer.publish_due` with the simulated time
-  after advancing the vehicle; exactly the frames due by then are captured and sent.
+  after advancing the vehicle; exactly the frames due by then are captured and sent. With
+  ``defer=True`` a frame sent after a latency is captured later, at
+  :meth:`NatNetServer.capture_deferred` (the backend calls it once the board's reply is out,
+  before the vehicle moves on): the same packet, off the lockstep round trip.
 
 Every vehicle call is made under the shared ``lock`` (do not hold it when calling
 ``publish_due``). The command port is always served by its own thread, which survives any
