@@ -48,6 +48,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from drivers.errors import DriverError
 from drivers.mavlink.config import MavlinkConfig
 from drivers.mavlink.signing import DEFAULT_KEY_ENV, SigningKeyError, load_signing_key
@@ -61,7 +63,8 @@ FINAL_ANNOUNCE_S = 1.5
 STATS_SUFFIX = ".mavlink.json"
 
 #: shared status block written by the loop: flight state, preflight ok, battery voltage (V)
-STATUS_STATE, STATUS_PREFLIGHT, STATUS_BATTERY = 0, 1, 2
+STATUS_STATE, STATUS_PREFLIGHT, STATUS_BATTERY = op.STATUS_STATE, op.STATUS_PREFLIGHT, \
+    op.STATUS_BATTERY
 
 
 class MavlinkKeyError(UserError):
@@ -158,9 +161,12 @@ def _phase(status: Any) -> op.FlightPhase:
         return op.FlightPhase.PREFLIGHT
 
 
-def vehicle_telemetry(row: Any, status: Any, events: list[str]) -> op.VehicleTelemetry:
-    """One record row and the loop's status block -> a snapshot for the bridge."""
-    phase = _phase(status)
+def vehicle_telemetry(row: Any, status: Any, events: list[str],
+                      phase: op.FlightPhase | None = None) -> op.VehicleTelemetry:
+    """One record row and the loop's status block -> a snapshot for the bridge (in ``phase``
+    if given, else the status block's phase now)."""
+    if phase is None:
+        phase = _phase(status)
 
     def vec(v: Any) -> tuple[float, ...]:
         return tuple(float(x) for x in v)
@@ -204,6 +210,7 @@ class SessionGcs:
         self.options = options
         self.status = status
         self._last_row: Any = None
+        self._transitions_seen = 0  # phase changes of the status block published so far
         cfg = MavlinkConfig(uri=options.uri, signing=options.key is not None)
         self.bridge = MavlinkBridge(
             cfg, LoopCommandSink(status, commands, params.tilt.max_tilt_rad),
@@ -228,9 +235,20 @@ class SessionGcs:
         return [f"mavlink {o.uri}: unsigned, telemetry only: commands that change the flight "
                 "are refused (set a key to command the vehicle)"]
 
-    def publish(self, row: Any, events: list[str]) -> None:
-        self._last_row = row
-        self.bridge.publish(vehicle_telemetry(row, self.status, events))
+    def publish(self, rows: Any, events: list[str]) -> None:
+        """The rows the ring gave since the last call (oldest first, at least one) and the
+        event lines: first each phase change since then, in order, at the row of its time
+        (so a GCS sees a phase however briefly it lasted), then the newest row."""
+        changes, self._transitions_seen = op.transitions_since(self.status,
+                                                               self._transitions_seen)
+        if changes:
+            times = rows["t_s"]
+            for t_s, phase in changes:
+                i = min(max(int(np.searchsorted(times, t_s, side="right")) - 1, 0),
+                        len(rows) - 1)
+                self.bridge.publish(vehicle_telemetry(rows[i], self.status, [], phase))
+        self._last_row = rows[-1]
+        self.bridge.publish(vehicle_telemetry(rows[-1], self.status, events))
 
     def close(self, events: list[str] | None = None) -> None:
         """Final state out for ``final_announce_s``, the stats file written, link closed."""

@@ -52,6 +52,7 @@ from groundstation.flight import (
     Transition,
 )
 from groundstation.interfaces import ImuLink, PoseLink, TiltLink
+from groundstation.operator import post_transition
 from groundstation.timing import LoopTimer, TimingSummary
 
 log = logging.getLogger(__name__)
@@ -567,6 +568,8 @@ class FlightLoop:
                 continue
             self.event_sink(f"{tr.t_s:.3f} s {tr.from_state.name} -> {tr.to_state.name}: "
                             f"{tr.reason}")
+            if self.shared_status is not None:  # every change, for the operator surfaces
+                post_transition(self.shared_status, tr.t_s, int(tr.to_state))
             if tr.to_state is FlightState.ARMED:
                 self.imu.request_motor_start()
             elif tr.to_state in (FlightState.CUT, FlightState.DISARMED):

@@ -46,7 +46,7 @@ import math
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 Vec3 = tuple[float, float, float]
 Quat = tuple[float, float, float, float]
@@ -54,6 +54,12 @@ Quat = tuple[float, float, float, float]
 __all__ = [
     "MAX_TAKEOFF_ALT_M",
     "MAX_TILT_RAD",
+    "STATUS_BATTERY",
+    "STATUS_PREFLIGHT",
+    "STATUS_SIZE",
+    "STATUS_STATE",
+    "STATUS_TRANSITIONS",
+    "TRANSITION_RING",
     "Arm",
     "CommandResult",
     "Disarm",
@@ -75,6 +81,8 @@ __all__ = [
     "decide",
     "next_phase",
     "operator_params",
+    "post_transition",
+    "transitions_since",
 ]
 
 #: Mechanical tilt range of the FAST-Hex (paper: 0..35 deg).
@@ -403,3 +411,40 @@ def operator_params(*, kp_pos: Vec3, kv_pos: Vec3, ki_pos: Vec3, kr_att: Vec3, k
         ParamSpec("TILT_RATE_DPS", max_tilt_rate_deg_s, 0.0, max_tilt_rate_deg_s,
                   "tilt rate limit (deg/s); may only be lowered"),
     )
+
+
+# -- the status block a flight loop shares with its operator surfaces -------------------------
+#: Layout of the shared float array (``multiprocessing.Array("d", STATUS_SIZE)``) the loop
+#: writes and the telemetry process reads: the phase now, the preflight verdict, the battery
+#: voltage, then every phase change as it happens: a counter and a ring of the newest
+#: ``TRANSITION_RING`` (time s, new phase) pairs. A phase shorter than a reader's pass (a CUT
+#: of one tick, a lockstep mission, a starved telemetry process) is still seen, in order.
+STATUS_STATE, STATUS_PREFLIGHT, STATUS_BATTERY, STATUS_TRANSITIONS = 0, 1, 2, 3
+TRANSITION_RING = 16
+_RING0 = 4
+STATUS_SIZE = _RING0 + 2 * TRANSITION_RING
+
+
+def post_transition(status: Any, t_s: float, phase: int) -> None:
+    """The loop's side of a phase change: the ring entry, then the phase, then the counter
+    (in this order, so a reader never finds a counter ahead of its entry)."""
+    n = int(status[STATUS_TRANSITIONS])
+    i = _RING0 + 2 * (n % TRANSITION_RING)
+    status[i] = t_s
+    status[i + 1] = float(phase)
+    status[STATUS_STATE] = float(phase)
+    status[STATUS_TRANSITIONS] = float(n + 1)
+
+
+def transitions_since(status: Any, seen: int) -> tuple[list[tuple[float, FlightPhase]], int]:
+    """The reader's side: the phase changes after the first ``seen`` ones, oldest first (the
+    newest ``TRANSITION_RING`` of them if more came), and the new count to pass next time."""
+    n = int(status[STATUS_TRANSITIONS])
+    out = []
+    for k in range(max(seen, n - TRANSITION_RING), n):
+        i = _RING0 + 2 * (k % TRANSITION_RING)
+        try:
+            out.append((float(status[i]), FlightPhase(int(status[i + 1]))))
+        except ValueError:  # not a phase: skipped, never a crash of the reader
+            continue
+    return out, n

@@ -48,6 +48,7 @@ from estimator.ukf import Ukf
 from groundstation.flight import SafetyLimits
 from groundstation.gcs import GcsOptions, gcs_options, start_gcs
 from groundstation.loop import FlightLoop, LoopOptions, LoopResult
+from groundstation.operator import STATUS_SIZE
 from groundstation.record import RECORD_DTYPE, RecordWriter
 from groundstation.session_config import EmulatedBackend, HardwareBackend, SessionConfig
 from groundstation.signals import ignore_stop_signals, stop_signals_blocked
@@ -239,7 +240,7 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
                     pending_events.append(text)
             ev.flush()
             if gcs is not None and len(rows):
-                gcs.publish(rows[-1], pending_events)
+                gcs.publish(rows, pending_events)
                 pending_events = []
             if finished:
                 rest = ring.drain()
@@ -329,7 +330,7 @@ class FlightSession:
             resource_tracker.ensure_running()
         stop = ctx.Event()
         events: Any = ctx.Queue(maxsize=10_000)
-        status: Any = ctx.Array("d", 3, lock=False)
+        status: Any = ctx.Array("d", STATUS_SIZE, lock=False)
         commands: Any = ctx.Queue(maxsize=100)
         wall0 = time.perf_counter()
         on_event = self.on_event

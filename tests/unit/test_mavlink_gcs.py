@@ -6,9 +6,11 @@ from __future__ import annotations
 import hashlib
 import math
 import queue
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from config.schema import load_config_text
@@ -93,7 +95,7 @@ def test_that_the_options_carry_the_key_but_never_print_it(tmp_path: Path) -> No
 
 
 def _status(phase: op.FlightPhase, preflight: bool = True) -> list[float]:
-    s = [0.0] * 3
+    s = [0.0] * op.STATUS_SIZE
     s[STATUS_STATE], s[STATUS_PREFLIGHT], s[STATUS_BATTERY] = float(phase), float(preflight), 15.0
     return s
 
@@ -189,3 +191,69 @@ def test_that_a_link_that_cannot_open_is_an_event_line_not_a_lost_record(tmp_pat
 def test_that_the_environment_is_not_read_when_mavlink_is_off(tmp_path: Path) -> None:
     assert gcs_options("", _Telemetry(), tmp_path / "f.fhr",
                        environ={"FASTHEX_MAVLINK_KEY": " "}) is None
+
+
+def test_that_the_status_ring_hands_out_each_phase_change_once_in_order() -> None:
+    # Fixture
+    status = _status(op.FlightPhase.PREFLIGHT)
+    P = op.FlightPhase
+    # Test / Assert: two changes, read; one more; then more than the ring holds
+    op.post_transition(status, 1.0, P.ARMED)
+    op.post_transition(status, 1.5, P.TAKEOFF)
+    first, seen = op.transitions_since(status, 0)
+    assert first == [(1.0, P.ARMED), (1.5, P.TAKEOFF)] and seen == 2
+    assert status[op.STATUS_STATE] == P.TAKEOFF  # the phase now follows every change
+    op.post_transition(status, 2.0, P.MISSION)
+    assert op.transitions_since(status, seen) == ([(2.0, P.MISSION)], 3)
+    for k in range(op.TRANSITION_RING + 4):
+        op.post_transition(status, 3.0 + k, P.LANDING if k % 2 else P.MISSION)
+    late, seen = op.transitions_since(status, 3)
+    assert seen == 3 + op.TRANSITION_RING + 4 and len(late) == op.TRANSITION_RING
+    assert late[0][0] == 3.0 + 4 and late[-1] == (3.0 + op.TRANSITION_RING + 3, P.LANDING)
+    # a corrupted entry is skipped, never raised
+    status[5] = 99.0
+    assert all(p in P for _, p in op.transitions_since(status, 0)[0])
+
+
+def test_that_a_whole_flight_between_two_telemetry_passes_reaches_the_gcs_phase_by_phase(
+        tmp_path: Path) -> None:
+    from mavlink_support import free_udp_port
+    from pymavlink import mavutil
+
+    from groundstation.configs import load_vehicle
+    from groundstation.gcs import start_gcs
+    from groundstation.record import RECORD_DTYPE
+
+    # Fixture: a GCS listening; the loop flies a whole (lockstep-fast) mission between two
+    # passes of a starved telemetry process, which then drains 50 rows at once
+    port = free_udp_port()
+    gcs_conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=255)
+    events = tmp_path / "f.fhr.events.txt"
+    events.write_text("")
+    opts = GcsOptions(f"udpout:127.0.0.1:{port}", None, "", False, str(tmp_path / "s.json"),
+                      final_announce_s=0.0)
+    status = _status(op.FlightPhase.PREFLIGHT)
+    gcs = start_gcs(opts, load_vehicle("fasthex"), status, queue.Queue(), str(events),
+                    echo_events=False)
+    assert gcs is not None
+    rows = np.zeros(50, RECORD_DTYPE)
+    rows["t_s"] = np.arange(50) * 0.1
+    P = op.FlightPhase
+    try:
+        gcs.publish(rows[:1], [])
+        for t_s, phase in ((0.5, P.ARMED), (1.0, P.TAKEOFF), (2.0, P.MISSION),
+                           (3.0, P.LANDING), (4.0, P.DISARMED)):
+            op.post_transition(status, t_s, phase)
+        # Test
+        gcs.publish(rows, [])
+        modes: list[int] = []
+        deadline = time.monotonic() + 10.0
+        while (not modes or modes[-1] != P.DISARMED) and time.monotonic() < deadline:
+            msg = gcs_conn.recv_match(type="HEARTBEAT", blocking=True, timeout=0.5)
+            if msg is not None and (not modes or modes[-1] != msg.custom_mode):
+                modes.append(msg.custom_mode)
+    finally:
+        gcs.close()
+        gcs_conn.close()
+    # Assert: every phase went out, in order, though only the last was current at the pass
+    assert modes == [P.PREFLIGHT, P.ARMED, P.TAKEOFF, P.MISSION, P.LANDING, P.DISARMED]
