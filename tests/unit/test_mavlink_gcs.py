@@ -241,12 +241,14 @@ def test_that_a_whole_flight_between_two_telemetry_passes_reaches_the_gcs_phase_
     P = op.FlightPhase
     try:
         gcs.publish(rows[:1], [])
+        # the GCS has seen the vehicle in PREFLIGHT
+        assert gcs_conn.recv_match(type="HEARTBEAT", blocking=True, timeout=10.0) is not None
         for t_s, phase in ((0.5, P.ARMED), (1.0, P.TAKEOFF), (2.0, P.MISSION),
                            (3.0, P.LANDING), (4.0, P.DISARMED)):
             op.post_transition(status, t_s, phase)
         # Test
         gcs.publish(rows, [])
-        modes: list[int] = []
+        modes: list[int] = [P.PREFLIGHT]
         deadline = time.monotonic() + 10.0
         while (not modes or modes[-1] != P.DISARMED) and time.monotonic() < deadline:
             msg = gcs_conn.recv_match(type="HEARTBEAT", blocking=True, timeout=0.5)
