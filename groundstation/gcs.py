@@ -243,6 +243,12 @@ class SessionGcs:
                                                                self._transitions_seen)
         if changes:
             times = rows["t_s"]
+            if self._last_row is None:
+                # a first pass after the loop has moved on (a slow start of this process, a
+                # fast lockstep flight): the bridge first learns the session's initial phase,
+                # so that the first change is announced as one
+                self.bridge.publish(vehicle_telemetry(rows[0], self.status, [],
+                                                      op.FlightPhase.PREFLIGHT))
             for t_s, phase in changes:
                 i = min(max(int(np.searchsorted(times, t_s, side="right")) - 1, 0),
                         len(rows) - 1)
