@@ -55,6 +55,7 @@ from drivers.mavlink.config import MavlinkConfig
 from drivers.mavlink.signing import DEFAULT_KEY_ENV, SigningKeyError, load_signing_key
 from groundstation import operator as op
 from groundstation.cli import UserError
+from groundstation.operator import STATUS_BATTERY, STATUS_PREFLIGHT, STATUS_STATE
 
 log = logging.getLogger(__name__)
 
@@ -62,9 +63,6 @@ log = logging.getLogger(__name__)
 FINAL_ANNOUNCE_S = 1.5
 STATS_SUFFIX = ".mavlink.json"
 
-#: shared status block written by the loop: flight state, preflight ok, battery voltage (V)
-STATUS_STATE, STATUS_PREFLIGHT, STATUS_BATTERY = op.STATUS_STATE, op.STATUS_PREFLIGHT, \
-    op.STATUS_BATTERY
 
 
 class MavlinkKeyError(UserError):

@@ -52,7 +52,12 @@ from groundstation.flight import (
     Transition,
 )
 from groundstation.interfaces import ImuLink, PoseLink, TiltLink
-from groundstation.operator import post_transition
+from groundstation.operator import (
+    STATUS_BATTERY,
+    STATUS_PREFLIGHT,
+    STATUS_STATE,
+    post_transition,
+)
 from groundstation.timing import LoopTimer, TimingSummary
 
 log = logging.getLogger(__name__)
@@ -522,11 +527,12 @@ class FlightLoop:
 
     def _exchange_with_operators(self, battery_v: float) -> None:
         """Every 0.1 s: publish the state for operator surfaces, take their requests."""
-        if self.shared_status is not None:
-            self.shared_status[0] = float(int(self.sm.state))
-            self.shared_status[1] = float(all(ok for _, ok, _ in self.preflight_report)
-                                          and bool(self.preflight_report))
-            self.shared_status[2] = battery_v if math.isfinite(battery_v) else math.nan
+        status = self.shared_status
+        if status is not None:
+            status[STATUS_STATE] = float(int(self.sm.state))
+            status[STATUS_PREFLIGHT] = float(all(ok for _, ok, _ in self.preflight_report)
+                                             and bool(self.preflight_report))
+            status[STATUS_BATTERY] = battery_v if math.isfinite(battery_v) else math.nan
         q = self.command_queue
         if q is not None:
             while True:

@@ -48,7 +48,7 @@ from estimator.ukf import Ukf
 from groundstation.flight import SafetyLimits
 from groundstation.gcs import GcsOptions, gcs_options, start_gcs
 from groundstation.loop import FlightLoop, LoopOptions, LoopResult
-from groundstation.operator import STATUS_SIZE
+from groundstation.operator import STATUS_SIZE, STATUS_STATE
 from groundstation.record import RECORD_DTYPE, RecordWriter
 from groundstation.session_config import EmulatedBackend, HardwareBackend, SessionConfig
 from groundstation.signals import ignore_stop_signals, stop_signals_blocked
@@ -497,7 +497,7 @@ class FlightSession:
 
                     release_cpu_latency()
             result.telemetry_dropped = ring.dropped
-            status[0] = float(int(loop.sm.state))  # the final state, for the MAVLink GCS
+            status[STATUS_STATE] = float(int(loop.sm.state))  # the final state, for the GCS
             if self.stop_signals is not None and self.stop_signals.count:
                 result.end_reason += f" (on {self.stop_signals.describe()})"
             # to the events file only: the summary that follows says it to the operator

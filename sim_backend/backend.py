@@ -238,12 +238,14 @@ class EmulatedVehicleBackend:
                                     p, seed=opts.seed, start_pos_w_m=opts.start_pos_w_m,
                                     plant=None if sc is None else sc.plant,
                                     disturbances=() if sc is None else sc.disturbances)
-        self.vehicle = _SteppedVehicle(self.sim, defer_captures=opts.clock == "lockstep")
+        lockstep = opts.clock == "lockstep"
+        self.vehicle = _SteppedVehicle(self.sim, defer_captures=lockstep)
         assert isinstance(self.vehicle, EmulatedVehicle)
         self.lock = threading.Lock()
         link = opts.link_dir
         self.flight_ctrl = EmulatedFlightCtrl(
-            self.vehicle, lock=self.lock, after_output=self.vehicle.settle,
+            self.vehicle, lock=self.lock,
+            after_output=self.vehicle.settle if lockstep else None,
             link_path=link / "flight-ctrl" if link else None,
             config=FlightCtrlEmulatorConfig(clock=opts.clock, faults=opts.wire_faults,
                                             watchdog_s=opts.watchdog_s,

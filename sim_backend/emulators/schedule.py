@@ -44,16 +44,11 @@ class CaptureSchedule(Generic[T]):
         captured = self.capture_deferred()
         if self._next_capture_s is None or now_s - self._next_capture_s > STARVED_S:
             self._next_capture_s = now_s
-        defer = defer and latency_s > _EPS_S
         while self._next_capture_s <= now_s + _EPS_S:
-            if defer:
-                self._deferred.append((now_s + latency_s, capture))
-            else:
-                frame = capture()
-                captured += 1
-                if frame is not None:
-                    self._pending.append((now_s + latency_s, frame))
+            self._deferred.append((now_s + latency_s, capture))
             self._next_capture_s += self.period_s
+        if not (defer and latency_s > _EPS_S):  # the frame is due now, or deferral not asked
+            captured += self.capture_deferred()
         send = []
         while self._pending and self._pending[0][0] <= now_s + _EPS_S:
             send.append(self._pending.popleft()[1])
