@@ -8,7 +8,9 @@ and on the emulated backend alike (the loop never sees a simulator or a hardware
   lockstep flight one synchronous service cycle on request
   (:class:`drivers.dynamixel.device.TiltServo`).
 - :class:`PoseLink`: the motion capture: the newest pose and the stream statistics; a lockstep
-  loop drains the socket itself with ``poll()`` (:class:`drivers.mocap.natnet_client.NatNetClient`).
+  loop takes the datagrams off the socket itself as its IMU sample arrives (``receive()``) and
+  decodes them after its motor command (``handle_received()``)
+  (:class:`drivers.mocap.natnet_client.NatNetClient`).
 """
 
 from __future__ import annotations
@@ -58,4 +60,6 @@ class PoseLink(Protocol):
 
     def stats(self) -> MocapStats: ...
 
-    def poll(self) -> int: ...
+    def receive(self) -> int: ...
+
+    def handle_received(self) -> int: ...

@@ -3,12 +3,16 @@
 One tick (``architecture.md``, "One tick"):
 
 1. wait for the next IMU sample (with a timeout: a silent link is a fault, not a hang);
-2. take the newest MoCap pose (a lockstep loop first drains the socket itself) and the servo's
-   newest measurement (a lockstep loop runs a synchronous servo cycle every few ticks);
-3. UKF predict with the IMU sample, update with a new pose at its capture time;
+2. the servo's newest measurement (a lockstep loop runs a synchronous servo cycle every few
+   ticks; it also takes the MoCap datagrams that came before the sample off the socket);
+3. UKF predict with the IMU sample;
 4. flight state machine (health of every input -> continue, land, cut);
 5. mission reference, tilt planner and controller (:class:`controller.pipeline.FlightComputer`)
    -> six spin rates, written as one ``w`` frame; the tilt command goes to the servo mailbox;
+   then, after the command, a new MoCap pose is decoded (lockstep) and fused at its capture
+   time, for the next tick: a frame tick's ~0.1 ms of decode and fusion stays off the path
+   from IMU sample to motors (the pose reaches the controller one tick later; the UKF
+   compensates its ~10 ms latency either way);
 6. one flight-record row (flat values, :func:`groundstation.record.flat_row`) into the telemetry
    ring (never blocks), the tick's timing recorded.
 
@@ -203,6 +207,8 @@ class FlightLoop:
         self._longest_gap_ns = 0
         #: capture times of the UKF's recent re-seeds from MoCap (persistent disagreement)
         self._reseeds: collections.deque[float] = collections.deque(maxlen=8)
+        self._last_frame = -1               # frame number of the newest pose taken
+        self._last_pose_t_s = -math.inf     # capture time of the newest valid pose fused
 
     # -- the loop --------------------------------------------------------------------------
     def run(self) -> LoopResult:
@@ -210,8 +216,6 @@ class FlightLoop:
         sm = self.sm
         t0_s: float | None = None
         t_s = 0.0
-        last_frame = -1
-        last_pose_t_s = -math.inf
         takeoff_t_s: float | None = None
         takeoff_wait_s = 0.0  # mission-clock time held at the take-off end for the vehicle
         lifted_off = False
@@ -313,7 +317,7 @@ class FlightLoop:
                 t0_s = 0.0 if opts.lockstep else t_ns * 1e-9
             t_s = t_ns * 1e-9 - t0_s
 
-            # 2. servo measurement and newest pose
+            # 2. servo measurement (and, lockstep, the MoCap datagrams waiting)
             # a faulted servo is retried at 2 Hz only (each failed cycle costs a timeout)
             sync_every = opts.servo_sync_every if servo_health is not ServoHealth.FAULT \
                 else 250
@@ -335,20 +339,8 @@ class FlightLoop:
                     servo_state = self._servo_sync_failed(exc)
             elif not opts.lockstep:
                 servo_state = self.tilt.latest()
-            if opts.lockstep:
-                self.pose.poll()
-            pose = self.pose.latest()
-            if pose is not None and pose.frame_number != last_frame:
-                last_frame = pose.frame_number
-                if pose.valid:
-                    cap_s = pose.t_ns * 1e-9 - t0_s
-                    # 3. (update part) the UKF replays from the capture time; it needs one
-                    # IMU sample first (its clock starts with the first prediction)
-                    if math.isfinite(self.ukf.t_s) and self.ukf.update_pose(
-                            cap_s, pose.pos_w_m, pose.q_wb) is PoseVerdict.RESET:
-                        self._reseeds.append(cap_s)  # MoCap refused, then taken as truth
-                    last_pose_t_s = cap_s
-                    self._counters["poses_fused"] += 1
+            if opts.lockstep:  # the frames that came before this sample; fused after `w`
+                self.pose.receive()
             servo_health = _servo_health(servo_state)
             if servo_state is not None and math.isfinite(servo_state.tilt_rad):
                 alpha = min(max(servo_state.tilt_rad, 0.0), self.params.tilt.max_tilt_rad)
@@ -399,8 +391,8 @@ class FlightLoop:
                 if (t_s >= opts.min_preflight_s and estimator_ok) or timed_out:
                     # the newest pose's age on the host's clock now (realtime): a pose may
                     # have been captured after this tick's IMU sample
-                    pose_age_s = t_s - last_pose_t_s if opts.lockstep or t0_s is None else \
-                        time.monotonic_ns() * 1e-9 - t0_s - last_pose_t_s
+                    pose_age_s = t_s - self._last_pose_t_s if opts.lockstep or t0_s is None \
+                        else time.monotonic_ns() * 1e-9 - t0_s - self._last_pose_t_s
                     passed = self._preflight(t_s, est_state, servo_state, pose_age_s)
                     if passed or timed_out:
                         self._report_preflight(t_s)
@@ -427,7 +419,8 @@ class FlightLoop:
             on_ground = (sm.state is FlightState.LANDING and ground_since_s is not None
                          and t_s - ground_since_s > TOUCHDOWN_CONFIRM_S)
             ground_since_s = (ground_since_s or t_s) if self._near_ground(est_state) else None
-            h = self._health(0.0, link_ok, t_s - last_pose_t_s, estimator_ok, servo_health,
+            h = self._health(0.0, link_ok, t_s - self._last_pose_t_s, estimator_ok,
+                             servo_health,
                              battery_v, est_state, on_ground, phase, spinning,
                              lifted_off=lifted_off, takeoff_reached=at_height,
                              mocap_consistent=self._mocap_consistent(t_s),
@@ -480,6 +473,11 @@ class FlightLoop:
                 self.tilt.set_tilt(tick.alpha_cmd_rad)
             if flying:
                 extremes.add(h, gap_s, self.imu_rate_fraction)
+            # 3. (update part) the newest MoCap frame, fused for the next tick: its decode and
+            # fusion (~0.1 ms on a frame tick) stay off the path from IMU sample to command
+            if opts.lockstep:
+                self.pose.handle_received()
+            self._take_pose(t0_s)
             eta_f = 1.0
             if tick is not None:  # the commanded body force feeds the UKF's force observer
                 force_cmd_b, eta_f = self.computer.thrust_force_b(alpha, tick.cmd.thrusts_n)
@@ -564,6 +562,21 @@ class FlightLoop:
                 self._rx_errors = errors
                 return None
         return None
+
+    def _take_pose(self, t0_s: float) -> None:
+        """Fuse the newest pose if it is a new frame. The UKF replays from the capture time; it
+        needs one IMU sample first (its clock starts with the first prediction)."""
+        pose = self.pose.latest()
+        if pose is None or pose.frame_number == self._last_frame:
+            return
+        self._last_frame = pose.frame_number
+        if pose.valid:
+            cap_s = pose.t_ns * 1e-9 - t0_s
+            if math.isfinite(self.ukf.t_s) and self.ukf.update_pose(
+                    cap_s, pose.pos_w_m, pose.q_wb) is PoseVerdict.RESET:
+                self._reseeds.append(cap_s)  # MoCap refused, then taken as truth
+            self._last_pose_t_s = cap_s
+            self._counters["poses_fused"] += 1
 
     def _act_on_transitions(self, prev: FlightState, t_s: float, est: VehicleState
                             ) -> LandHere | None:

@@ -151,6 +151,8 @@ class NatNetClient(FrameWaits):
         self._frames_seen = 0
         self._next_keepalive = 0.0
         self._handshaking = False  # frames are ignored until the version is settled
+        #: receive(): datagrams taken off the sockets, not yet handled (data, sender, arrival)
+        self._received: list[tuple[bytes, tuple[str, int], int]] = []
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -198,8 +200,21 @@ class NatNetClient(FrameWaits):
             self._thread.start()
 
     def poll(self) -> int:
-        """Receive every datagram already waiting, in the caller's thread; never blocks.
-        Returns the number of datagrams handled. Also sends the unicast keep-alive when due."""
+        """Receive and handle every datagram already waiting, in the caller's thread; never
+        blocks. Returns the number of datagrams handled. Also sends the unicast keep-alive
+        when due. (:meth:`receive`, then :meth:`handle_received`.)"""
+        received = self.receive()
+        self.handle_received()
+        return received
+
+    def receive(self) -> int:
+        """Take every datagram already waiting off the sockets, each with its arrival time,
+        without decoding it (:meth:`handle_received` does); the caller's thread, never blocks.
+        Returns how many. Also sends the unicast keep-alive when due.
+
+        A lockstep loop takes them as its IMU sample arrives (what came before the sample is
+        what it sees, whatever the thread scheduling) and handles them once its motor command
+        is out."""
         if self.config.mode == "unicast":
             now = time.monotonic()
             if now >= self._next_keepalive:
@@ -208,7 +223,7 @@ class NatNetClient(FrameWaits):
         socks = (self._cmd, self._data)
         if not self._waiting.any(socks):
             return 0
-        handled = 0
+        received = 0
         for sock in socks:
             while sock is not None:
                 try:
@@ -216,10 +231,17 @@ class NatNetClient(FrameWaits):
                 except (BlockingIOError, InterruptedError):
                     break
                 except OSError:
-                    return handled
-                self._on_datagram(data, addr)
-                handled += 1
-        return handled
+                    return received
+                self._received.append((data, addr, self._clock()))
+                received += 1
+        return received
+
+    def handle_received(self) -> int:
+        """Decode and file the datagrams :meth:`receive` took, in arrival order; how many."""
+        todo, self._received = self._received, []
+        for data, addr, rx_t_ns in todo:
+            self._on_datagram(data, addr, rx_t_ns)
+        return len(todo)
 
     def close(self) -> None:
         self._stop.set()
@@ -364,12 +386,15 @@ class NatNetClient(FrameWaits):
         tests). Never raises for any content."""
         self._on_datagram(data, addr)
 
-    def _on_datagram(self, data: bytes, addr: tuple[str, int]) -> None:
-        """Handle one datagram. Never raises for any content."""
+    def _on_datagram(self, data: bytes, addr: tuple[str, int], rx_t_ns: int | None = None
+                     ) -> None:
+        """Handle one datagram that arrived at ``rx_t_ns`` (None: now). Never raises for any
+        content."""
         if addr[0] != self.config.server_ip:
             self.monitor.count_foreign()
             return
-        rx_t_ns = self._clock()
+        if rx_t_ns is None:
+            rx_t_ns = self._clock()
         if self._handshaking and data[:2] == _FRAME_ID:
             return  # its version may not be settled yet
         try:

@@ -133,6 +133,9 @@ class QtmClient(FrameWaits):
         self._server_ip = ""
         self._parser = qtm.QtmStreamParser()
         self._backlog: list[qtm.Packet] = []  # decoded during the handshake, not yet used
+        #: receive(): what was taken off the sockets, not yet handled: (UDP sender or None for
+        #: the TCP stream, bytes, arrival time)
+        self._received: list[tuple[tuple[str, int] | None, bytes, int]] = []
         self._names: tuple[str, ...] = ()
         self._index: int | None = None
         self._latest: PoseSample | None = None
@@ -166,20 +169,30 @@ class QtmClient(FrameWaits):
             self._thread.start()
 
     def poll(self) -> int:
-        """Receive every packet already waiting, in the caller's thread; never blocks. Returns
-        the number of TCP reads and datagrams handled. A broken connection is closed (and,
-        without the receive thread, not re-opened)."""
+        """Receive and handle every packet already waiting, in the caller's thread; never
+        blocks. Returns the number of TCP reads and datagrams handled. A broken connection is
+        closed (and, without the receive thread, not re-opened). (:meth:`receive`, then
+        :meth:`handle_received`.)"""
+        received = self.receive()
+        self.handle_received()
+        return received
+
+    def receive(self) -> int:
+        """Take what is already waiting off the sockets (datagrams, TCP reads), each with its
+        arrival time, without decoding it (:meth:`handle_received` does); the caller's
+        thread, never blocks. Returns how many. A connection found closed is closed here. As
+        :meth:`NatNetClient.receive`."""
         sock, udp = self._sock, self._udp
         if not self._waiting.any((sock, udp)):
             return 0
-        handled = 0
+        received = 0
         while udp is not None:
             try:
                 data, addr = udp.recvfrom(65536)
             except OSError:  # BlockingIOError: nothing waiting
                 break
-            self.feed_datagram(data, addr)
-            handled += 1
+            self._received.append((addr, data, self._clock()))
+            received += 1
         while sock is not None:
             try:
                 chunk = sock.recv(65536, socket.MSG_DONTWAIT)
@@ -187,11 +200,25 @@ class QtmClient(FrameWaits):
                 break
             except OSError:
                 chunk = b""
-            handled += 1
-            if not chunk or not self.feed_stream(chunk):
+            received += 1
+            if not chunk:
                 self._reset()
                 break
-        return handled
+            self._received.append((None, chunk, self._clock()))
+        return received
+
+    def handle_received(self) -> int:
+        """Decode and apply what :meth:`receive` took, in arrival order; how many. A corrupt
+        stream closes the connection."""
+        todo, self._received = self._received, []
+        corrupt = False
+        for addr, data, rx_t_ns in todo:
+            if addr is not None:
+                self.feed_datagram(data, addr, rx_t_ns)
+            elif not corrupt and not self.feed_stream(data, rx_t_ns):
+                corrupt = True      # the rest of that connection's bytes go with it
+                self._reset()
+        return len(todo)
 
     def close(self) -> None:
         self._stop.set()
@@ -355,10 +382,10 @@ class QtmClient(FrameWaits):
                     self._reset()
                     return
 
-    def feed_stream(self, chunk: bytes) -> bool:
-        """Handle bytes received on the TCP connection (in process: fuzzing, replay, tests).
-        False when the stream is corrupt: it is counted and the parser starts over (the
-        connection must be re-opened). Never raises for any content."""
+    def feed_stream(self, chunk: bytes, rx_t_ns: int | None = None) -> bool:
+        """Handle bytes received on the TCP connection at ``rx_t_ns`` (None: now; in process:
+        fuzzing, replay, tests). False when the stream is corrupt: it is counted and the
+        parser starts over (the connection must be re-opened). Never raises for any content."""
         try:
             packets = self._parser.feed(chunk)
         except qtm.QtmDecodeError as exc:
@@ -366,17 +393,19 @@ class QtmClient(FrameWaits):
             log.warning("%s: stream corrupt (%s); reconnecting", self.config.name, exc)
             self._parser = qtm.QtmStreamParser()
             return False
-        rx = self._clock()
+        rx = self._clock() if rx_t_ns is None else rx_t_ns
         for p in packets:
             self._on_packet(p, rx)
         return True
 
-    def feed_datagram(self, data: bytes, addr: tuple[str, int]) -> None:
-        """Handle one UDP datagram as if it had arrived from ``addr``. Never raises."""
+    def feed_datagram(self, data: bytes, addr: tuple[str, int], rx_t_ns: int | None = None
+                      ) -> None:
+        """Handle one UDP datagram as if it had arrived from ``addr`` at ``rx_t_ns`` (None:
+        now). Never raises."""
         if addr[0] != self._server_ip:
             self.monitor.count_foreign()
             return
-        rx = self._clock()
+        rx = self._clock() if rx_t_ns is None else rx_t_ns
         try:
             packet = qtm.decode_packet(data)
         except qtm.QtmDecodeError:

@@ -487,10 +487,10 @@ class EmulatedMX28:
     def step(self) -> None:
         """Advance motion, load and temperature to the vehicle's present time.
 
-        The serving thread calls this every ``STEP_PERIOD_S`` and on every instruction; a
-        lockstep backend also calls it right after each ``vehicle.advance`` so that the servo's
-        trajectory is sampled at every physics step. Call it *without* holding the vehicle
-        lock: it takes that lock itself (after its own)."""
+        The serving thread calls this on every instruction, and every ``STEP_PERIOD_S`` when
+        it steps on the wall clock (realtime; in lockstep nothing moves between instructions,
+        the physics' own rate-limited servo follows the last goal). Call it *without* holding
+        the vehicle lock: it takes that lock itself (after its own)."""
         with self._mutex:
             self._step()
 

@@ -157,3 +157,39 @@ def test_that_an_operator_stop_lands_and_a_second_one_cuts(tmp_path: Path) -> No
     reasons = [t.reason for t in out_cut.result.transitions]
     assert "operator: second stop request" in reasons
     assert states(out_cut)[-2:] == [FlightState.CUT, FlightState.DISARMED]
+
+
+def test_that_a_mocap_frame_is_decoded_and_fused_after_the_motor_command_of_its_tick(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # Fixture: the order of the tick's steps, from the real devices and estimator of a
+    # lockstep flight: IMU sample taken, frames decoded, pose fused, command sent
+    from drivers.mikrokopter.device import FlightCtrl
+    from drivers.mocap.natnet_client import NatNetClient
+    from estimator.ukf import Ukf
+
+    events: list[str] = []
+
+    def spy(cls: type, name: str, tag: str, when: Callable[[object], bool] = bool) -> None:
+        inner = getattr(cls, name)
+
+        def wrapped(self: object, *args: object, **kwargs: object) -> object:
+            result = inner(self, *args, **kwargs)
+            if when(result):
+                events.append(tag)
+            return result
+        monkeypatch.setattr(cls, name, wrapped)
+
+    spy(FlightCtrl, "wait_next", "imu", lambda sample: sample is not None)
+    spy(FlightCtrl, "send_rotor_speeds_hz", "send", lambda _: True)
+    spy(NatNetClient, "handle_received", "decode")
+    spy(Ukf, "update_pose", "fuse", lambda _: True)
+    # Test
+    out = fly(tmp_path)
+    # Assert: the flight was normal, and in every tick the command went out before the
+    # tick's frame was decoded or fused (both wait for the slack after `w`)
+    assert out.result.end_reason == "mission complete" and out.result.faults == []
+    ticks = "".join(e[0] for e in events).split("i")[1:]
+    fused = [t for t in ticks if "f" in t]
+    assert len(fused) > 500  # ~11 s of 100 Hz MoCap
+    assert all(t.startswith("s") and "d" in t and t.index("d") < t.index("f")
+               for t in fused), [t for t in fused if not t.startswith("s")][:3]

@@ -348,3 +348,32 @@ def test_that_a_polled_client_sees_exactly_the_frames_sent_before_the_poll(
         assert seen == list(range(seen[0], seen[0] + 5))
     finally:
         client.close()
+
+
+def test_that_a_received_frame_keeps_its_arrival_time_until_it_is_handled(
+        lockstep: list[NatNetServer]) -> None:
+    # Fixture: a lockstep loop takes the datagrams as its IMU sample arrives (receive) and
+    # decodes them after its motor command (handle_received), while its clock has moved on
+    server, cfg = _pair("4.1", "unicast")
+    client = _start(server, cfg, lockstep)
+    client.start(receive_thread=False)
+    vehicle = server._vehicle
+    assert isinstance(vehicle, BenchVehicle)
+    try:
+        vehicle.advance(0.01)
+        assert server.publish_due(vehicle.now_s()) == 1
+        arrival_ns = round(vehicle.now_s() * 1e9)
+        pose = vehicle.true_pose()
+        # Test: taken off the socket now, handled 3 ms of the client's clock later
+        assert client.receive() == 1
+        assert client.latest() is None          # nothing decoded yet
+        vehicle.advance(0.003)
+        assert client.handle_received() == 1
+        # Assert: the sample is the frame's, stamped with the time it was taken
+        sample = client.latest()
+        assert sample is not None and sample.rx_t_ns == arrival_ns
+        assert sample.t_ns <= arrival_ns
+        _assert_pose(sample, pose.pos_w_m, pose.q_wb)
+        assert client.handle_received() == 0 and client.receive() == 0
+    finally:
+        client.close()

@@ -335,3 +335,39 @@ def test_that_a_short_lockstep_flight_is_flown_on_the_emulated_qtm_server(
     measured = rows[rows["measured"] > 0]
     est_err_mm = 1e3 * np.linalg.norm(measured["est_pos_w_m"] - measured["pos_w_m"], axis=1)
     assert est_err_mm.mean() < 3.0  # as on NatNet: the UKF fused the QTM poses
+
+
+@pytest.mark.parametrize("udp", [False, True])
+def test_that_a_received_qtm_frame_keeps_its_arrival_time_until_it_is_handled(
+        udp: bool) -> None:
+    # Fixture: a lockstep server and a client with no receive thread, on the simulated clock
+    vehicle = PosedVehicle(Q_TILTED)
+    server = QtmServer(vehicle, QtmEmulatorConfig(port=0, rate_hz=200.0))
+    server.start(realtime=False)
+    client = QtmClient(QtmConfig(port=server.port, body="fasthex", udp=udp),
+                       clock=lambda: round(vehicle.now_s() * 1e9))
+    try:
+        client.start(receive_thread=False)
+        got = 0
+        for _ in range(200):        # the first frames may come before the stream is set up
+            vehicle.advance(0.005)
+            server.publish_due(vehicle.now_s())
+            arrival_ns = round(vehicle.now_s() * 1e9)
+            # Test: taken as they arrive, decoded 2 ms of the client's clock later
+            deadline = 0
+            while not client.receive() and deadline < 1000:  # TCP: the bytes may lag a little
+                deadline += 1
+            vehicle.advance(0.002)
+            before = client.latest()
+            if client.handle_received():
+                sample = client.latest()
+                assert sample is not None and sample is not before
+                # Assert: stamped with the time it was taken, not the time it was decoded
+                assert sample.rx_t_ns == arrival_ns and sample.valid
+                got += 1
+            if got >= 5:
+                break
+        assert got >= 5
+    finally:
+        client.close()
+        server.close()
