@@ -37,6 +37,7 @@ def test_that_the_imu_streams_at_the_rate_asked_with_valid_samples(
             if s is not None:
                 samples.append(s)
         stats = fc.link_stats()
+        elapsed_s = time.monotonic() - t0
         # one more take settles the overwritten count of what arrived up to ``stats``
         last = fc.wait_next(0.0)
         taken = len(samples) + (last is not None)
@@ -44,10 +45,14 @@ def test_that_the_imu_streams_at_the_rate_asked_with_valid_samples(
     # Assert: the board streamed at the rate asked, within what the link check tolerates
     # (80 %). Counted where the driver decodes the frames, not where this thread took them: on a
     # loaded host the test thread is late and the mailbox keeps only the newest sample.
+    # The board's rate over the whole 2 s (the samples decoded over the time between the two
+    # stats calls): within 5 %. The driver's own estimate counts host arrivals over its 0.5 s
+    # window, so a host stall that straddles the window's start (samples queued, then read at
+    # once) shows more than the board sent (534 Hz seen on a loaded CI host, 27 ms gap): it is
+    # held to the limits the link check and the preflight apply (80 %, 125 %).
     received = stats.imu.received - before.imu.received
-    assert received > 0.8 * 2.0 * IMU_RATE_HZ
-    assert stats.imu.measured_rate_hz >= 0.8 * IMU_RATE_HZ
-    assert stats.imu.measured_rate_hz <= 1.05 * IMU_RATE_HZ
+    assert received == pytest.approx(IMU_RATE_HZ * elapsed_s, rel=0.05)
+    assert 0.8 * IMU_RATE_HZ <= stats.imu.measured_rate_hz <= 1.25 * IMU_RATE_HZ
     # nothing lost: every sample decoded was taken or counted overwritten (more may have
     # arrived after ``stats``, so the count can only exceed what was received)
     assert taken + overwritten >= received
