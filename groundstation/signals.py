@@ -2,8 +2,11 @@
 
 SIGINT (Ctrl-C: the terminal sends it to the whole foreground process group), SIGTERM
 (``timeout``, systemd, ``kill``) and SIGHUP (the terminal closed) all mean the same thing: the
-first one lands the vehicle, a second one cuts the motors. SIGKILL cannot be caught: then the
-Flight-Ctrl's own watchdog stops the motors.
+first one lands the vehicle, a second one cuts the motors. The same signal again within
+``REPEAT_WINDOW_S`` is the same request, not a second one: GNU ``timeout`` sends its signal to
+the command and then to the command's process group, so the command gets it twice within
+microseconds (a landing would otherwise become a cut 2 ms later); no operator presses Ctrl-C
+twice that fast. SIGKILL cannot be caught: then the Flight-Ctrl's own watchdog stops the motors.
 
 The handlers do the least a signal handler may: they count, remember the signal number and
 append to a deque (an atomic operation that takes no lock), and the C-level wake-up byte of
@@ -20,15 +23,19 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import math
 import os
 import select
 import signal
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from types import FrameType
 from typing import Any
 
 #: the signals that ask a session to stop (land first, then cut)
 STOP_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+#: the same stop signal again within this many seconds is one request (``timeout`` sends two)
+REPEAT_WINDOW_S = 0.1
 
 
 def ignore_stop_signals() -> None:
@@ -62,15 +69,20 @@ class StopSignals:
     """Installs the stop handlers on the main thread; a context manager restores the old ones.
 
     ``requests`` is the deque the flight loop takes operator requests from: each signal
-    appends ``"stop"`` (the state machine lands on the first and cuts on the second)."""
+    appends ``"stop"`` (the state machine lands on the first and cuts on the second), except
+    the same signal repeated within ``REPEAT_WINDOW_S`` (counted, not a new request)."""
 
-    def __init__(self, requests: collections.deque[Any] | None = None) -> None:
+    def __init__(self, requests: collections.deque[Any] | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.requests: collections.deque[Any] = (requests if requests is not None
                                                  else collections.deque())
         self.count = 0
         #: the signal numbers received, in order (a fixed-size ring would do; a list of a
         #: few ints is all a session ever sees)
         self.received: list[int] = []
+        self.repeats = 0  # signals taken as a repeat of the one before (REPEAT_WINDOW_S)
+        self._last_at_s = -math.inf  # when the newest request came
+        self._clock = clock
         self.hangup = False  # SIGHUP: the terminal is gone, stop writing to it
         self._previous: dict[int, Any] = {}
         self._rfd = self._wfd = -1
@@ -78,11 +90,19 @@ class StopSignals:
 
     # -- handlers ------------------------------------------------------------------------
     def _handler(self, signum: int, frame: FrameType | None) -> None:
+        now = self._clock()
+        repeat = bool(self.received) and self.received[-1] == signum \
+            and now - self._last_at_s < REPEAT_WINDOW_S
+        if not repeat:
+            self._last_at_s = now  # the window runs from the request, not from each repeat
         self.count += 1
         self.received.append(signum)
         if signum == signal.SIGHUP:
             self.hangup = True
-        self.requests.append("stop")
+        if repeat:
+            self.repeats += 1
+        else:
+            self.requests.append("stop")
 
     def install(self) -> StopSignals:
         self._rfd, self._wfd = os.pipe()

@@ -5,7 +5,8 @@ real pseudo-terminal as its controlling terminal.
   process group (the ground station and its telemetry process; a realtime flight's servo
   process too: a lockstep flight serves the servo in its own thread);
 - SIGTERM to the process group (``timeout``, ``kill -TERM -PGID``; systemd signals every process
-  of the unit);
+  of the unit); ``timeout`` itself, which sends it to the command and then to the group (the
+  same signal twice at once is one request);
 - SIGHUP: the terminal closes (the master side of the pty is closed).
 
 Each must land the vehicle (``-> LANDING -> DISARMED``) with the end reason naming the signal,
@@ -65,7 +66,8 @@ class TerminalFlight:
     """`fasthex fly` on a lockstep session hovering for a minute, in a pty of its own
     (``clock="realtime"``: the same session on the wall clock, its servo in a process)."""
 
-    def __init__(self, tmp_path: Path, name: str, clock: str = "lockstep") -> None:
+    def __init__(self, tmp_path: Path, name: str, clock: str = "lockstep",
+                 prefix: tuple[str, ...] = ()) -> None:
         self.tmp = tmp_path / "tmp"  # TMPDIR of the flight: its session dir lands here
         self.tmp.mkdir()
         (tmp_path / "short-hover.yaml").write_text(
@@ -79,7 +81,7 @@ class TerminalFlight:
         self.master, slave = pty.openpty()
         env = dict(os.environ, TMPDIR=str(self.tmp))
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "groundstation", "fly", str(session), "--record",
+            [*prefix, sys.executable, "-m", "groundstation", "fly", str(session), "--record",
              str(self.record), "--rerun", "off"],
             stdin=slave, stdout=slave, stderr=slave, env=env, preexec_fn=_take_terminal,
             close_fds=True)
@@ -174,6 +176,40 @@ def test_that_sigterm_to_the_process_group_lands(tmp_path: Path) -> None:
     flight.signal_group(signal.SIGTERM)
     assert flight.wait() == 1
     _assert_landed(flight, "SIGTERM")
+    flight.assert_nothing_left()
+
+
+def test_that_timeout_lands_though_it_sends_its_signal_twice(tmp_path: Path) -> None:
+    """GNU ``timeout`` sends its signal to the command, then to the command's process group:
+    SIGTERM twice within microseconds (often merged into one pending signal; the next test
+    delivers them apart). Either way one request: land, not land and then cut."""
+    flight = TerminalFlight(tmp_path, "timeout", prefix=("timeout", "-s", "TERM", "600"))
+    flight.wait_airborne()
+    os.kill(flight.proc.pid, signal.SIGALRM)  # timeout's own timer signal: it times out now
+    assert flight.wait() == 124  # timeout's status for "the command timed out"
+    events = flight.events.read_text()
+    assert "-> LANDING: operator: land" in events
+    assert "LANDING -> DISARMED: touchdown" in events
+    assert "CUT" not in events, events
+    assert "session ended: operator: land (on SIGTERM" in events  # one or both were seen
+    rows = read_record(flight.record).rows
+    assert rows["pos_w_m"][-1][2] < 0.15  # on the ground (start height 0.1 m)
+    flight.assert_nothing_left()
+
+
+def test_that_sigterm_twice_at_once_lands_as_timeout_on_a_loaded_host_sends_it(
+        tmp_path: Path) -> None:
+    """The two sends of ``timeout`` reach the ground station as one pending signal when they
+    come close enough, and as two when ``timeout`` is preempted between them (a loaded host:
+    seen in a realtime flight under CPU hogs, landed then cut 2 ms later). Here the second
+    comes 20 ms after the first: two deliveries, one request."""
+    flight = TerminalFlight(tmp_path, "term-twice")
+    flight.wait_airborne()
+    os.kill(flight.proc.pid, signal.SIGTERM)
+    time.sleep(0.02)  # well inside the repeat window (0.1 s), long enough to be delivered apart
+    os.killpg(flight.proc.pid, signal.SIGTERM)
+    assert flight.wait() == 1
+    _assert_landed(flight, "SIGTERM, SIGTERM")
     flight.assert_nothing_left()
 
 

@@ -1,0 +1,62 @@
+"""The stop-signal policy (groundstation.signals): the first stop signal lands, a second cuts,
+and the same signal repeated at once (GNU ``timeout`` sends it to the command and then to its
+process group) is one request. Real signals sent to this process; the handler's clock is the
+test's, so no assertion depends on how fast this host runs."""
+
+from __future__ import annotations
+
+import os
+import signal
+
+from groundstation.signals import REPEAT_WINDOW_S, StopSignals
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t_s = 1000.0
+
+    def __call__(self) -> float:
+        return self.t_s
+
+
+def test_that_the_same_signal_twice_at_once_is_one_stop_request() -> None:
+    # Fixture
+    clock = Clock()
+    with StopSignals(clock=clock) as signals:
+        # Test: what `timeout` does: the command, then its process group (here: both us)
+        os.kill(os.getpid(), signal.SIGTERM)
+        clock.t_s += 0.001
+        os.kill(os.getpid(), signal.SIGTERM)
+        # Assert: one request (land), the repeat counted
+        assert list(signals.requests) == ["stop"]
+        assert signals.count == 2 and signals.repeats == 1
+        assert signals.describe() == "SIGTERM, SIGTERM"
+
+
+def test_that_the_same_signal_after_the_window_is_a_second_request() -> None:
+    clock = Clock()
+    with StopSignals(clock=clock) as signals:
+        os.kill(os.getpid(), signal.SIGINT)
+        clock.t_s += REPEAT_WINDOW_S  # the operator presses Ctrl-C again
+        os.kill(os.getpid(), signal.SIGINT)
+        assert list(signals.requests) == ["stop", "stop"]  # land, then cut
+        assert signals.repeats == 0
+
+
+def test_that_different_signals_at_once_are_two_requests() -> None:
+    # Ctrl-C and a SIGTERM from elsewhere are two requests, however close
+    with StopSignals(clock=Clock()) as signals:
+        os.kill(os.getpid(), signal.SIGINT)
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert list(signals.requests) == ["stop", "stop"]
+
+
+def test_that_repeats_do_not_stretch_the_window() -> None:
+    # a signal every 0.6 windows: the third is 1.2 windows after the request, a new one
+    clock = Clock()
+    with StopSignals(clock=clock) as signals:
+        for _ in range(3):
+            os.kill(os.getpid(), signal.SIGHUP)
+            clock.t_s += 0.6 * REPEAT_WINDOW_S
+        assert list(signals.requests) == ["stop", "stop"]
+        assert signals.repeats == 1
