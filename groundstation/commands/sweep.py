@@ -12,7 +12,8 @@ crash and only the missing runs fly.
 Exit codes: 0 when every run has a row (whatever its verdict), 130 when interrupted by
 Ctrl-C, SIGTERM or the terminal closing (the rows done so far are in the table; the runs in
 flight are dropped and every worker process is ended), 2 for a problem with the campaign file
-or the options.
+or the options. The same signal again within 0.1 s is the same stop (``timeout`` sends its
+signal to the command and then to its process group): it does not interrupt the clean-up.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import argparse
 import contextlib
 import signal
 import sys
+import time
 from pathlib import Path
 from types import FrameType
 
@@ -70,7 +72,7 @@ def _sweep(args: argparse.Namespace) -> int:
     from config import find_config
     from groundstation.campaign import load_campaign
     from groundstation.cli import UserError, version
-    from groundstation.signals import stop_signals_blocked
+    from groundstation.signals import REPEAT_WINDOW_S, stop_signals_blocked
     from groundstation.sweep import (
         FLUSH_INTERVAL_S,
         Progress,
@@ -116,8 +118,13 @@ def _sweep(args: argparse.Namespace) -> int:
                                               if r.config_error else ""))
         return 0
     previous = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGHUP)}
+    stops: list[tuple[int, float]] = []  # (signal, time) of each stop taken
 
     def interrupt(signum: int, frame: FrameType | None) -> None:
+        now = time.monotonic()
+        if stops and stops[-1][0] == signum and now - stops[-1][1] < REPEAT_WINDOW_S:
+            return  # the same stop again (timeout sends it to us, then to our group)
+        stops.append((signum, now))
         raise KeyboardInterrupt
 
     for sig in previous:

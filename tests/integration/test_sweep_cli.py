@@ -286,6 +286,26 @@ def test_that_a_pool_sweep_stops_cleanly_on_each_stop_signal_and_the_same_comman
 
 
 @pytest.mark.exclusive  # a CI run with four busy workers saw Dask's shutdown outlast 60 s
+def test_that_sigterm_twice_at_once_stops_a_sweep_as_one_stop(tmp_path: Path) -> None:
+    """GNU ``timeout`` sends its signal to the command and then to its process group: the
+    sweep gets SIGTERM twice (20 ms apart here: ``timeout`` preempted between its two sends on
+    a loaded host). The second is the same stop, not a second interrupt in the middle of the
+    first one's clean-up."""
+    # Fixture
+    write_campaign(tmp_path)
+    out = tmp_path / "hop.parquet"
+    sweep_ = TerminalSweep(["hop-cli.yaml", "--workers", "2", "--out", out.name], tmp_path)
+    seen = sweep_.wait_for_runs(1)
+    # Test
+    os.kill(sweep_.proc.pid, signal.SIGTERM)
+    time.sleep(0.02)  # inside the repeat window (0.1 s), long enough to be delivered apart
+    sweep_.signal_group(signal.SIGTERM)
+    code = sweep_.wait()
+    # Assert: stopped once, cleanly
+    assert_interrupted_cleanly(sweep_, code, out, at_least=seen)
+    assert sweep_.text.count("sweep interrupted") == 1, sweep_.text
+
+
 def test_that_ctrl_c_stops_a_dask_local_cluster_sweep_without_dask_tracebacks(
         tmp_path: Path) -> None:
     # Fixture
