@@ -65,6 +65,37 @@ def stop_signals_blocked() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
+@contextlib.contextmanager
+def stop_signals_interrupt() -> Iterator[None]:
+    """Within: SIGTERM and SIGHUP raise ``KeyboardInterrupt`` in the main thread, as Ctrl-C
+    does, so that a batch command (``sweep``, ``tune``) stops the same way whatever stopped it;
+    the same signal again within ``REPEAT_WINDOW_S`` is the same stop (``timeout`` sends two),
+    not a second interrupt in the middle of the first one's clean-up. The previous handlers
+    are restored on the way out, except for the signal of a stop taken: the caller is ending
+    (it returns once the interrupt is handled), and that signal is ignored from then on, so
+    that a repeat arriving after the clean-up cannot kill the exit (SIGKILL still does)."""
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGHUP)}
+    stops: list[tuple[int, float]] = []  # (signal, time) of each stop taken
+
+    def interrupt(signum: int, frame: FrameType | None) -> None:
+        now = time.monotonic()
+        if stops and stops[-1][0] == signum and now - stops[-1][1] < REPEAT_WINDOW_S:
+            return
+        stops.append((signum, now))
+        raise KeyboardInterrupt
+
+    for sig in previous:
+        signal.signal(sig, interrupt)
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            # a stop was taken: the command is ending, and the repeat of its signal may come
+            # after the clean-up (a command that stops fast), even during the interpreter's
+            # exit, when Python has put back the default action: ignored from here on
+            signal.signal(sig, signal.SIG_IGN if stops and stops[-1][0] == sig else handler)
+
+
 class StopSignals:
     """Installs the stop handlers on the main thread; a context manager restores the old ones.
 

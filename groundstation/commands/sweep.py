@@ -20,11 +20,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import signal
 import sys
-import time
 from pathlib import Path
-from types import FrameType
 
 NAME = "sweep"
 HELP = "fly a campaign of simulated flights in parallel into a results table (or: sweep report)"
@@ -72,7 +69,7 @@ def _sweep(args: argparse.Namespace) -> int:
     from config import find_config
     from groundstation.campaign import load_campaign
     from groundstation.cli import UserError, version
-    from groundstation.signals import REPEAT_WINDOW_S, stop_signals_blocked
+    from groundstation.signals import stop_signals_blocked, stop_signals_interrupt
     from groundstation.sweep import (
         FLUSH_INTERVAL_S,
         Progress,
@@ -117,41 +114,28 @@ def _sweep(args: argparse.Namespace) -> int:
                   f"seed={r.seed} {point}" + (f"  CONFIG ERROR: {r.config_error}"
                                               if r.config_error else ""))
         return 0
-    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGHUP)}
-    stops: list[tuple[int, float]] = []  # (signal, time) of each stop taken
-
-    def interrupt(signum: int, frame: FrameType | None) -> None:
-        now = time.monotonic()
-        if stops and stops[-1][0] == signum and now - stops[-1][1] < REPEAT_WINDOW_S:
-            return  # the same stop again (timeout sends it to us, then to our group)
-        stops.append((signum, now))
-        raise KeyboardInterrupt
-
-    for sig in previous:
-        signal.signal(sig, interrupt)
     runner: Runner | None = None
-    try:
-        with stop_signals_blocked():  # worker processes start with the stop signals held
-            runner = make_runner(args.workers, args.scheduler)
-        print(f"running on {runner.description}", file=sys.stderr)
-        progress = Progress(todo, label=campaign.name)
-        flown, skipped = sweep(runs, table, runner, retry_errors=args.retry_errors,
-                               progress=progress)
-    except KeyboardInterrupt:
-        have = len(table.rows)
-        with contextlib.suppress(OSError):  # SIGHUP: the terminal is gone
-            print(f"fasthex: sweep interrupted: "
-                  f"{sum(1 for r in runs if r.run_id in table.rows)} of {len(runs)} runs are "
-                  f"in {table_path} ({have} rows); run the same command again to fly the rest",
-                  file=sys.stderr)
-        return 130
-    except OSError as exc:
-        raise UserError(f"sweep: {exc}") from None
-    finally:
-        if runner is not None:  # sweep() closed it, unless the interrupt came before it ran
-            runner.close()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    with stop_signals_interrupt():  # SIGTERM, SIGHUP: as Ctrl-C; a repeat is the same stop
+        try:
+            with stop_signals_blocked():  # worker processes start with the stop signals held
+                runner = make_runner(args.workers, args.scheduler)
+            print(f"running on {runner.description}", file=sys.stderr)
+            progress = Progress(todo, label=campaign.name)
+            flown, skipped = sweep(runs, table, runner, retry_errors=args.retry_errors,
+                                   progress=progress)
+        except KeyboardInterrupt:
+            have = len(table.rows)
+            with contextlib.suppress(OSError):  # SIGHUP: the terminal is gone
+                print(f"fasthex: sweep interrupted: "
+                      f"{sum(1 for r in runs if r.run_id in table.rows)} of {len(runs)} runs are "
+                      f"in {table_path} ({have} rows); run the same command again to fly the rest",
+                      file=sys.stderr)
+            return 130
+        except OSError as exc:
+            raise UserError(f"sweep: {exc}") from None
+        finally:
+            if runner is not None:  # sweep() closed it, unless the interrupt came before it ran
+                runner.close()
     verdicts: dict[str, int] = {}
     for r in runs:
         row = table.rows.get(r.run_id)

@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
     from config import find_config
     from groundstation.campaign import load_campaign
     from groundstation.cli import UserError
-    from groundstation.signals import stop_signals_blocked
+    from groundstation.signals import stop_signals_blocked, stop_signals_interrupt
     from groundstation.sweep import make_runner, rows_to_table
     from groundstation.tune import (
         best_trial,
@@ -71,28 +71,29 @@ def run(args: argparse.Namespace) -> int:
     print(f"tuning {', '.join(p.name for p in campaign.spec.tune.parameters)} on "
           f"{campaign.name}: {campaign.n_runs()} runs per trial, on {runner.description}",
           file=sys.stderr)
-    try:
+    with stop_signals_interrupt():  # SIGTERM, SIGHUP: as Ctrl-C; a repeat is the same stop
         try:
-            results, baseline = search(campaign, runner, workers=workers, trials=args.trials,
-                                       storage=args.storage,
-                                       log=lambda line: print(line, file=sys.stderr))
-        except ValueError as exc:
-            raise UserError(f"{campaign.path}: {exc}") from None
-        best = best_trial(results)
-        if best is None:
-            print("fasthex: tune: no feasible trial; nothing written (the report of the "
-                  "trials is on stderr above)", file=sys.stderr)
-            return 1
-        print(f"best: trial {best.number}, objective {best.objective:.3f}; flying the held-out "
-              "check", file=sys.stderr)
-        # the gains as the vehicle file will hold them (4 decimals) are the ones checked
-        gains = {k: round(v, 4) for k, v in best.gains.items()}
-        checks, _ = validate(campaign, runner, baseline, gains)
-    except KeyboardInterrupt:
-        print("\nfasthex: tune interrupted; nothing written", file=sys.stderr)
-        return 130
-    finally:
-        runner.close()
+            try:
+                results, baseline = search(campaign, runner, workers=workers, trials=args.trials,
+                                           storage=args.storage,
+                                           log=lambda line: print(line, file=sys.stderr))
+            except ValueError as exc:
+                raise UserError(f"{campaign.path}: {exc}") from None
+            best = best_trial(results)
+            if best is None:
+                print("fasthex: tune: no feasible trial; nothing written (the report of the "
+                      "trials is on stderr above)", file=sys.stderr)
+                return 1
+            print(f"best: trial {best.number}, objective {best.objective:.3f}; flying the held-out "
+                  "check", file=sys.stderr)
+            # the gains as the vehicle file will hold them (4 decimals) are the ones checked
+            gains = {k: round(v, 4) for k, v in best.gains.items()}
+            checks, _ = validate(campaign, runner, baseline, gains)
+        except KeyboardInterrupt:
+            print("\nfasthex: tune interrupted; nothing written", file=sys.stderr)
+            return 130
+        finally:
+            runner.close()
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(tuned_vehicle_text(campaign, gains, trials=len(results),
                                       objective=best.objective))

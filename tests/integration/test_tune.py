@@ -139,3 +139,63 @@ def test_that_a_campaign_without_a_tune_section_is_refused(tmp_path: Path,
     (tmp_path / "c.yaml").write_text(CAMPAIGN.split("tune:")[0])
     assert main(["tune", str(tmp_path / "c.yaml"), "--workers", "1"]) == 2
     assert "no tune: section" in capsys.readouterr().err
+
+
+def test_that_timeout_stops_a_tune_cleanly_with_nothing_written(tmp_path: Path) -> None:
+    """``timeout`` sends SIGTERM to the command and then to its process group (20 ms apart here,
+    as when it is preempted between the two): the tune stops as on Ctrl-C, once: its message,
+    exit 130, no file written, no worker left."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import threading
+    import time
+    import uuid
+
+    # Fixture
+    (tmp_path / "hop.yaml").write_text(MISSION)
+    (tmp_path / "step.yaml").write_text(SCENARIO)
+    (tmp_path / "c.yaml").write_text(CAMPAIGN)
+    out = tmp_path / "tuned.yaml"
+    tag = uuid.uuid4().hex
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "groundstation", "tune", "c.yaml", "--workers", "1",
+         "--trials", "50", "--out", str(out)], cwd=tmp_path, stderr=subprocess.PIPE,
+        stdout=subprocess.DEVNULL, env=dict(os.environ, FASTHEX_TEST_TAG=tag),
+        start_new_session=True)
+    err = bytearray()
+    assert proc.stderr is not None
+    fd = proc.stderr.fileno()
+
+    def drain() -> None:  # what the command prints, as it prints it
+        while chunk := os.read(fd, 4096):
+            err.extend(chunk)
+    reader = threading.Thread(target=drain, daemon=True)
+    reader.start()
+    deadline = time.monotonic() + 120.0
+    while b"trial   1:" not in err and time.monotonic() < deadline:
+        time.sleep(0.05)  # polling what the command printed, bounded
+    assert b"trial   1:" in err, err.decode(errors="replace")
+    # Test
+    os.kill(proc.pid, signal.SIGTERM)
+    time.sleep(0.02)
+    os.killpg(proc.pid, signal.SIGTERM)
+    code = proc.wait(timeout=60)
+    reader.join(timeout=5)
+    text = err.decode(errors="replace")
+    # Assert
+    assert code == 130, text
+    assert text.count("tune interrupted; nothing written") == 1, text
+    assert "Traceback" not in text, text
+    assert not out.exists()
+    needle = f"FASTHEX_TEST_TAG={tag}".encode()
+    left = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                if needle in (entry / "environ").read_bytes().split(b"\0"):
+                    left.append(int(entry.name))
+            except OSError:
+                pass
+    assert left == []
