@@ -31,6 +31,7 @@ import pytest
 from flight_support import SESSION, SHORT_MISSION
 
 from groundstation.record import read_record
+from groundstation.signals import REPEAT_WINDOW_S
 
 
 def _rows(path: Path) -> int:
@@ -227,10 +228,13 @@ def test_that_a_second_signal_cuts(tmp_path: Path, sig: int) -> None:
     flight = TerminalFlight(tmp_path, f"cut-{int(sig)}")
     flight.wait_airborne()
     flight.signal_group(sig)
+    sent = time.monotonic()
     n = _rows(flight.record)
     deadline = time.monotonic() + 60.0
     while _rows(flight.record) < n + 250 and time.monotonic() < deadline:  # 0.5 s later
         time.sleep(0.05)
+    # and a person's second press: later than the repeat window (lockstep flies 0.5 s in less)
+    time.sleep(max(0.0, sent + 3 * REPEAT_WINDOW_S - time.monotonic()))
     flight.signal_group(sig)
     assert flight.wait() == 1
     events = flight.events.read_text()
