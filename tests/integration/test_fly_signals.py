@@ -225,7 +225,9 @@ def test_that_closing_the_terminal_lands(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_that_a_second_signal_cuts(tmp_path: Path, sig: int) -> None:
-    flight = TerminalFlight(tmp_path, f"cut-{int(sig)}")
+    # realtime: a person's second press comes after the repeat window (0.1 s) and while the
+    # landing (3 s) still runs; a lockstep flight lands in ~0.35 s of wall time
+    flight = TerminalFlight(tmp_path, f"cut-{int(sig)}", clock="realtime")
     flight.wait_airborne()
     flight.signal_group(sig)
     sent = time.monotonic()
@@ -233,8 +235,7 @@ def test_that_a_second_signal_cuts(tmp_path: Path, sig: int) -> None:
     deadline = time.monotonic() + 60.0
     while _rows(flight.record) < n + 250 and time.monotonic() < deadline:  # 0.5 s later
         time.sleep(0.05)
-    # and a person's second press: later than the repeat window (lockstep flies 0.5 s in less)
-    time.sleep(max(0.0, sent + 3 * REPEAT_WINDOW_S - time.monotonic()))
+    time.sleep(max(0.0, sent + 3 * REPEAT_WINDOW_S - time.monotonic()))  # past the window
     flight.signal_group(sig)
     assert flight.wait() == 1
     events = flight.events.read_text()
