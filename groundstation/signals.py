@@ -65,6 +65,24 @@ def stop_signals_blocked() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
+class _Requests:
+    """Which stop signals are requests: all but the same signal again within
+    ``REPEAT_WINDOW_S`` of the request it repeats (the window runs from the request, not from
+    each repeat)."""
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+        self._clock = clock
+        self.last: int | None = None   # the signal of the newest request
+        self._last_at_s = -math.inf
+
+    def is_repeat(self, signum: int) -> bool:
+        now = self._clock()
+        if signum == self.last and now - self._last_at_s < REPEAT_WINDOW_S:
+            return True
+        self.last, self._last_at_s = signum, now
+        return False
+
+
 @contextlib.contextmanager
 def stop_signals_interrupt() -> Iterator[None]:
     """Within: SIGTERM and SIGHUP raise ``KeyboardInterrupt`` in the main thread, as Ctrl-C
@@ -75,14 +93,11 @@ def stop_signals_interrupt() -> Iterator[None]:
     (it returns once the interrupt is handled), and that signal is ignored from then on, so
     that a repeat arriving after the clean-up cannot kill the exit (SIGKILL still does)."""
     previous = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGHUP)}
-    stops: list[tuple[int, float]] = []  # (signal, time) of each stop taken
+    stops = _Requests()
 
     def interrupt(signum: int, frame: FrameType | None) -> None:
-        now = time.monotonic()
-        if stops and stops[-1][0] == signum and now - stops[-1][1] < REPEAT_WINDOW_S:
-            return
-        stops.append((signum, now))
-        raise KeyboardInterrupt
+        if not stops.is_repeat(signum):
+            raise KeyboardInterrupt
 
     for sig in previous:
         signal.signal(sig, interrupt)
@@ -93,7 +108,7 @@ def stop_signals_interrupt() -> Iterator[None]:
             # a stop was taken: the command is ending, and the repeat of its signal may come
             # after the clean-up (a command that stops fast), even during the interpreter's
             # exit, when Python has put back the default action: ignored from here on
-            signal.signal(sig, signal.SIG_IGN if stops and stops[-1][0] == sig else handler)
+            signal.signal(sig, signal.SIG_IGN if stops.last == sig else handler)
 
 
 class StopSignals:
@@ -112,8 +127,7 @@ class StopSignals:
         #: few ints is all a session ever sees)
         self.received: list[int] = []
         self.repeats = 0  # signals taken as a repeat of the one before (REPEAT_WINDOW_S)
-        self._last_at_s = -math.inf  # when the newest request came
-        self._clock = clock
+        self._requests = _Requests(clock)
         self.hangup = False  # SIGHUP: the terminal is gone, stop writing to it
         self._previous: dict[int, Any] = {}
         self._rfd = self._wfd = -1
@@ -121,11 +135,7 @@ class StopSignals:
 
     # -- handlers ------------------------------------------------------------------------
     def _handler(self, signum: int, frame: FrameType | None) -> None:
-        now = self._clock()
-        repeat = bool(self.received) and self.received[-1] == signum \
-            and now - self._last_at_s < REPEAT_WINDOW_S
-        if not repeat:
-            self._last_at_s = now  # the window runs from the request, not from each repeat
+        repeat = self._requests.is_repeat(signum)
         self.count += 1
         self.received.append(signum)
         if signum == signal.SIGHUP:

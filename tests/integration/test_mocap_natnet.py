@@ -323,14 +323,21 @@ def test_that_a_silent_unicast_client_is_dropped_after_the_keepalive_timeout() -
         server.close()
 
 
-def test_that_a_polled_client_sees_exactly_the_frames_sent_before_the_poll(
-        lockstep: list[NatNetServer]) -> None:
-    # Fixture: no receive thread; the owner polls, as the lockstep flight loop does.
+def _polled_pair(started: list[NatNetServer]
+                 ) -> tuple[NatNetServer, NatNetClient, BenchVehicle]:
+    """A lockstep server and a started client with no receive thread (its owner polls)."""
     server, cfg = _pair("4.1", "unicast")
-    client = _start(server, cfg, lockstep)
+    client = _start(server, cfg, started)
     client.start(receive_thread=False)
     vehicle = server._vehicle
     assert isinstance(vehicle, BenchVehicle)
+    return server, client, vehicle
+
+
+def test_that_a_polled_client_sees_exactly_the_frames_sent_before_the_poll(
+        lockstep: list[NatNetServer]) -> None:
+    # Fixture: no receive thread; the owner polls, as the lockstep flight loop does.
+    server, client, vehicle = _polled_pair(lockstep)
     try:
         seen = []
         for _ in range(5):
@@ -354,11 +361,7 @@ def test_that_a_received_frame_keeps_its_arrival_time_until_it_is_handled(
         lockstep: list[NatNetServer]) -> None:
     # Fixture: a lockstep loop takes the datagrams as its IMU sample arrives (receive) and
     # decodes them after its motor command (handle_received), while its clock has moved on
-    server, cfg = _pair("4.1", "unicast")
-    client = _start(server, cfg, lockstep)
-    client.start(receive_thread=False)
-    vehicle = server._vehicle
-    assert isinstance(vehicle, BenchVehicle)
+    server, client, vehicle = _polled_pair(lockstep)
     try:
         vehicle.advance(0.01)
         assert server.publish_due(vehicle.now_s()) == 1
