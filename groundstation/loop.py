@@ -272,10 +272,10 @@ class FlightLoop:
                     age = missing * wait_s
                 if t0_s is None and not lost_link and age < 2.0:
                     if opts.lockstep:
-                        self.imu.send_rotor_speeds_hz(last_spins)
+                        self._command(last_spins)
                     continue  # the stream is starting
                 if age <= timeout_s and not lost_link:
-                    self.imu.send_rotor_speeds_hz(last_spins)
+                    self._command(last_spins)
                     self._counters["imu_missing"] += 1
                     continue
                 h = self._health(age if not lost_link else math.inf, False, math.inf, False,
@@ -285,7 +285,7 @@ class FlightLoop:
                 prev_state = sm.state
                 if sm.state in (FlightState.PREFLIGHT, FlightState.ARMED, FlightState.TAKEOFF,
                                 FlightState.MISSION, FlightState.LANDING) and not lost_link:
-                    self.imu.send_rotor_speeds_hz(last_spins)
+                    self._command(last_spins)
                     continue
                 end_reason = (f"Flight-Ctrl link lost ({lost_link})" if lost_link else
                               "IMU stream lost" if t0_s is not None else "no IMU stream")
@@ -464,7 +464,7 @@ class FlightLoop:
                 spins = tick.cmd.spin_hz
             elif directive.motors_on:
                 spins = (self.params.rotors.min_spin_hz,) * 6  # idle while spinning up
-            self.imu.send_rotor_speeds_hz(spins)
+            self._command(spins)
             sent_ns = time.monotonic_ns()
             last_spins = spins
             # after the send, what the motors need not wait for: the tilt goal (the servo
@@ -545,10 +545,25 @@ class FlightLoop:
             self.imu.stop_motors()
         except DriverError as exc:
             log.warning("cannot send the motor stop: %s", exc)
+    def _command(self, spins_hz: tuple[float, ...]) -> None:
+        """The rotor command (``w``). In lockstep it also steps the emulated board: the receive
+        errors counted so far are noted first, so that those of the reply it triggers are
+        told apart from older ones (see :meth:`_next_imu`)."""
+        if self.opts.lockstep:
+            self._rx_errors = self.imu.rx_errors
+        self.imu.send_rotor_speeds_hz(spins_hz)
+
     def _next_imu(self, timeout_s: float) -> Any:
         """The next IMU sample, or None. In lockstep a lost sample is noticed at once when the
-        link reports a receive error (a corrupted frame), otherwise after ``LOCKSTEP_LOST_S``
-        of wall time; on hardware after ``timeout_s``."""
+        link reports a receive error (a corrupted frame) since the last command, otherwise
+        after ``LOCKSTEP_LOST_S`` of wall time; on hardware after ``timeout_s``.
+
+        Lockstep stays deterministic on a loaded host: a sample that is only late (the
+        emulator not yet scheduled) is waited for. Errors older than the last command do not
+        count, and the error count is read under the driver's receive lock, so a chunk whose
+        errors are seen has filed its samples too: one more look finds the sample if the
+        chunk carried it. (Taking a late sample for lost would send a second ``w`` and step
+        the vehicle twice: a different flight.)"""
         if not self.opts.lockstep:
             return self.imu.wait_next(timeout_s)
         waited = 0.0
@@ -560,7 +575,7 @@ class FlightLoop:
             errors = self.imu.rx_errors
             if errors != self._rx_errors:
                 self._rx_errors = errors
-                return None
+                return self.imu.wait_next(0.0)
         return None
 
     def _take_pose(self, t0_s: float) -> None:

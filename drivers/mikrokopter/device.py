@@ -196,6 +196,9 @@ class BoardIdentity:
     """tk3 id (``mkfl1.8``) or the stock version (``2.12a``)."""
     accepted: bool
     """Whether this board can fly the FAST-Hex with the configured firmware ids."""
+    replies: tuple[str, ...] = ()
+    """Every tk3 id the board gave when none was accepted (the link has no checksum: ids that
+    differ are a corrupted link, the same one each time a board with other firmware)."""
 
 
 class LinkHealth(enum.Enum):
@@ -459,7 +462,9 @@ class FlightCtrl:
         self._clock = clock
         self._write_lock = threading.Lock()
         self._cond = threading.Condition()
-        self._tk3 = framing_tk3.Tk3Parser()
+        # fixed-length board messages: one whose `$` was corrupted is dropped at its last
+        # byte, not when the next frame starts
+        self._tk3 = framing_tk3.Tk3Parser(message_bytes_by_cmd=mkm.BOARD_MESSAGE_BYTES)
         self._stock = framing_stock.StockParser()
         self._listen_stock = False
         self._reader: threading.Thread | None = None
@@ -502,18 +507,25 @@ class FlightCtrl:
     def identify(self, *, tk3: bool = True, stock: bool = True) -> BoardIdentity:
         """Ask ``?`` (tk3), then ``v`` (stock); starts the reader thread if needed.
 
-        Raises :class:`FlightCtrlIdentityError` if the board answers neither.
+        A tk3 id that is not accepted is asked for again, up to ``identify_attempts`` in all:
+        tk3 frames carry no checksum, so one corrupted byte on a noisy line would otherwise
+        refuse a good board. Raises :class:`FlightCtrlIdentityError` if the board answers
+        neither.
         """
         self._ensure_reader()
         cfg = self.config
-        with self._cond:
-            self._identity = None
+        replies: list[str] = []
         for _ in range(cfg.identify_attempts if tk3 else 0):
+            with self._cond:
+                self._identity = None
             self._write(framing_tk3.encode_frame(mkm.Identify().encode()))
             if self._wait_for(lambda: self._identity is not None, cfg.identify_timeout_s):
                 ident = (self._identity or "").lstrip("?")
-                ok = any(fnmatch.fnmatchcase(ident, p) for p in cfg.firmware_ids)
-                return BoardIdentity("tk3", ident, ok)
+                if any(fnmatch.fnmatchcase(ident, p) for p in cfg.firmware_ids):
+                    return BoardIdentity("tk3", ident, True)
+                replies.append(ident)
+        if replies:
+            return BoardIdentity("tk3", replies[-1], False, tuple(replies))
         if stock:
             with self._cond:
                 self._listen_stock = True
@@ -541,6 +553,13 @@ class FlightCtrl:
         if ident.protocol == "stock":
             raise StockFirmwareError(self.device, ident.firmware_id)
         if not ident.accepted:
+            seen = sorted(set(ident.replies)) or [ident.firmware_id]
+            if len(seen) > 1:
+                raise FlightCtrlIdentityError(
+                    self.device, f"firmware ids differ from one answer to the next "
+                    f"({', '.join(map(repr, seen))}), none of the accepted "
+                    f"{', '.join(self.config.firmware_ids)}: a corrupted link? check the "
+                    "cable, its grounding and the baud rate")
             raise FlightCtrlIdentityError(
                 self.device, f"firmware id {ident.firmware_id!r} is not one of the accepted "
                 f"{', '.join(self.config.firmware_ids)}")
@@ -595,10 +614,15 @@ class FlightCtrl:
         """Receive errors so far (framing errors, bytes outside any frame, malformed or
         implausible messages, rejected sequence numbers): a cheap counter the loop can poll
         every tick. A frame whose start byte was corrupted shows only as bytes outside any
-        frame, so those count too."""
-        stats = self._tk3.stats
-        return (stats.frame_errors + stats.garbage_bytes + self._malformed + self._implausible
-                + self._timebase.rejected)
+        frame, so those count too.
+
+        Read under the receive lock: a chunk of bytes is filed whole, so a count that includes
+        a chunk's errors comes after the samples of that chunk are ready for :meth:`wait_next`
+        (the loop tells a lost sample from a late one by that order)."""
+        with self._cond:
+            stats = self._tk3.stats
+            return (stats.frame_errors + stats.garbage_bytes + self._malformed
+                    + self._implausible + self._timebase.rejected)
 
     def latest_imu(self) -> ImuSample | None:
         with self._cond:

@@ -21,6 +21,7 @@ A "message" here is the unescaped ``cmd + payload`` bytes; :func:`encode_frame` 
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 __all__ = ["ABORT", "END", "ESC", "MAX_MESSAGE_BYTES", "START", "Tk3Parser", "Tk3ParserStats",
@@ -60,7 +61,7 @@ class Tk3ParserStats:
     truncated: int = 0
     """Frames cut short by a new ``^`` before their ``$``."""
     oversize: int = 0
-    """Frames longer than 64 bytes, discarded."""
+    """Frames longer than 64 bytes, or than their command's fixed length, discarded."""
     empty: int = 0
     """``^$`` with no command byte."""
     bad_escape: int = 0
@@ -74,8 +75,20 @@ class Tk3ParserStats:
 class Tk3Parser:
     """Incremental tk3 deframer: ``feed(chunk) -> [message, ...]``, never raises on any input."""
 
-    def __init__(self, max_message_bytes: int = MAX_MESSAGE_BYTES) -> None:
+    def __init__(self, max_message_bytes: int = MAX_MESSAGE_BYTES,
+                 message_bytes_by_cmd: Mapping[bytes, int] | None = None) -> None:
+        """``message_bytes_by_cmd``: the fixed message length (cmd + payload) of command bytes
+        that have one. A frame of such a command is dropped (as oversize) as soon as it grows
+        past that length, not at its ``$``: a frame whose ``$`` was corrupted is then counted
+        when its last byte arrives, not when the next frame starts (which on a link where the
+        board answers each command may be a command away)."""
         self.max_message_bytes = max_message_bytes
+        self._limit_by_cmd = [max_message_bytes] * 256
+        for cmd, size in (message_bytes_by_cmd or {}).items():
+            if len(cmd) != 1 or not 1 <= size <= max_message_bytes:
+                raise ValueError(f"message length {size} for command {cmd!r}: expected one "
+                                 f"command byte and 1..{max_message_bytes} bytes")
+            self._limit_by_cmd[cmd[0]] = size
         self.stats = Tk3ParserStats()
         self._buf = bytearray()
         self._in_frame = False
@@ -154,7 +167,8 @@ class Tk3Parser:
 
     def _check_size(self) -> bool:
         """Drop the frame in progress if it overflowed; True if it was dropped."""
-        if len(self._buf) <= self.max_message_bytes:
+        buf = self._buf
+        if len(buf) <= self._limit_by_cmd[buf[0]]:  # never empty here: a byte was just added
             return False
         self.stats.oversize += 1
         self._in_frame = False

@@ -59,6 +59,7 @@ from config.schema import ConfigValueError
 
 __all__ = [
     "BOARD_MESSAGES",
+    "BOARD_MESSAGE_BYTES",
     "HALF_PERIOD_SLOWEST",
     "MAX_SPIN_HZ",
     "MAX_STREAM_PERIOD_US",
@@ -539,6 +540,10 @@ BOARD_MESSAGES: dict[bytes, type[ImuMessage] | type[MagMessage] | type[MotorMess
     b"T": ClockRateMessage,
 }
 """Fixed-length board messages by command byte."""
+
+BOARD_MESSAGE_BYTES: dict[bytes, int] = {
+    cmd: cls.WIRE.size + 1 for cmd, cls in BOARD_MESSAGES.items()}
+"""Their message lengths (command byte + payload), as the deframer checks them."""
 
 
 def decode_board_message(msg: bytes) -> BoardMessage:

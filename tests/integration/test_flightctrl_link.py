@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 import threading
@@ -97,6 +98,69 @@ def test_that_an_unaccepted_firmware_id_is_refused_naming_the_device(make_link: 
     with pytest.raises(FlightCtrlIdentityError, match=r"mkfl1\.5") as info:
         fc.connect()
     assert info.value.device == emu.path
+
+
+@contextlib.contextmanager
+def _identity_board(replies: list[str]) -> Iterator[tuple[PtyEndpoint, list[bytes]]]:
+    """A board on a real pty that answers each tk3 ``?`` with the next of ``replies`` (then
+    stays silent); what it was sent is collected, complete once the context exits."""
+    board = PtyEndpoint()
+    heard: list[bytes] = []
+    stop = threading.Event()
+
+    def answer() -> None:
+        pending = list(replies)
+        while not stop.is_set():
+            if board.wait_readable(0.05) and (data := board.read()):
+                heard.append(data)
+                for _ in range(data.count(b"^?$")):
+                    if pending:
+                        board.write(tk3.encode_frame(b"?" + pending.pop(0).encode("latin-1")))
+
+    thread = threading.Thread(target=answer, daemon=True)
+    thread.start()
+    try:
+        yield board, heard
+    finally:
+        stop.set()
+        thread.join()
+        if rest := board.read():  # anything sent after the last answer
+            heard.append(rest)
+        board.close()
+
+
+def test_that_a_corrupted_identity_is_asked_again_and_the_board_accepted() -> None:
+    # Fixture: tk3 frames carry no checksum; one byte of the first answer was hit on the line
+    with _identity_board(["mk\x10l1.8", "mkfl1.8"]) as (board, heard):
+        fc = FlightCtrl.open(f"pty://{board.path}", FlightCtrlConfig(identify_timeout_s=2.0))
+        try:
+            # Test
+            ident = fc.identify()
+        finally:
+            fc.close()
+    # Assert: the second answer is taken
+    assert (ident.protocol, ident.firmware_id, ident.accepted) == ("tk3", "mkfl1.8", True)
+    wire = b"".join(heard)  # then what close() sends
+    assert wire.startswith(b"^?$^?$^") and wire.count(b"^?$") == 2
+
+
+@pytest.mark.parametrize(("replies", "expected"), [
+    (["mkfl1.5"] * 4, r"firmware id 'mkfl1\.5' is not one of the accepted mkfl1\.8\*$"),
+    (["mk\x10l1.8", "mkfl1.5", "mk\x10l1.8", "mkfl\x7f.8"],
+     r"firmware ids differ from one answer to the next \('mk\\x10l1\.8', 'mkfl1\.5', "
+     r"'mkfl\\x7f\.8'\).*a corrupted link\?"),
+])
+def test_that_a_board_never_giving_an_accepted_id_is_refused_after_every_try(
+        replies: list[str], expected: str) -> None:
+    with _identity_board(replies) as (board, heard):
+        fc = FlightCtrl.open(f"pty://{board.path}", FlightCtrlConfig(identify_timeout_s=2.0))
+        try:
+            with pytest.raises(FlightCtrlIdentityError, match=expected):
+                fc.connect()
+        finally:
+            fc.close()
+    wire = b"".join(heard)  # identify_attempts, no stock 'v', then what close() sends
+    assert wire.count(b"^?$") == 4 and b"#bv" not in wire
 
 
 def test_that_a_stock_firmware_board_is_reported_as_unable_to_fly(make_link: MakeLink) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -137,3 +138,64 @@ def test_that_a_frame_after_any_garbage_including_start_bytes_is_recovered(
     sut = tk3.Tk3Parser()
     out = sut.feed(garbage + tk3.encode_frame(message))
     assert out[-1] == message
+
+
+# ---- fixed message lengths per command (the board's messages: the driver's configuration)
+
+IMU_FRAME = tk3.encode_frame(m.ImuMessage(7, (0.0, 0.0, 9.81), (0.01, -0.02, 0.03)).encode())
+
+
+def test_that_a_fixed_length_frame_whose_end_byte_was_corrupted_is_dropped_at_once() -> None:
+    # Fixture: an IMU frame whose '$' arrived as 'A'; nothing follows yet (lockstep: the next
+    # frame comes only after the next command)
+    wire = IMU_FRAME[:-1] + b"A"
+    plain = tk3.Tk3Parser()
+    sut = tk3.Tk3Parser(message_bytes_by_cmd=m.BOARD_MESSAGE_BYTES)
+    # Test
+    assert plain.feed(wire) == [] and sut.feed(wire) == []
+    # Assert: the plain parser still waits for the frame's end; ours has counted it
+    assert plain.stats.frame_errors == 0
+    assert sut.stats.oversize == 1 and sut.stats.frame_errors == 1
+    # and the next frame comes out whole
+    assert sut.feed(IMU_FRAME) == [IMU_FRAME[1:-1]]
+
+
+def test_that_a_frame_of_its_commands_exact_length_is_accepted_escaped_or_not() -> None:
+    sut = tk3.Tk3Parser(message_bytes_by_cmd={b"I": 4})
+    assert sut.feed(tk3.encode_frame(b"I^$!") + tk3.encode_frame(b"Iabc")) == [b"I^$!", b"Iabc"]
+    assert sut.feed(tk3.encode_frame(b"Iabcd") + tk3.encode_frame(b"J" * 64)) == [b"J" * 64]
+    assert sut.stats.oversize == 1
+
+
+def test_that_an_impossible_message_length_is_refused() -> None:
+    for lengths in ({b"I": 0}, {b"I": 65}, {b"IM": 4}):
+        with pytest.raises(ValueError, match="message length"):
+            tk3.Tk3Parser(message_bytes_by_cmd=lengths)
+
+
+@given(st.binary(max_size=600))
+def test_that_random_bytes_never_raise_with_fixed_lengths(data: bytes) -> None:
+    sut = tk3.Tk3Parser(message_bytes_by_cmd=m.BOARD_MESSAGE_BYTES)
+    for msg in sut.feed(data):
+        assert 1 <= len(msg) <= m.BOARD_MESSAGE_BYTES.get(msg[:1], tk3.MAX_MESSAGE_BYTES)
+
+
+@settings(max_examples=300)
+@given(
+    seq=st.integers(0, 255),
+    accel=st.tuples(*[st.floats(-150.0, 150.0)] * 3),
+    gyro=st.tuples(*[st.floats(-30.0, 30.0)] * 3),
+    cuts=st.lists(st.integers(min_value=0, max_value=60), max_size=6),
+)
+def test_that_any_imu_frame_comes_out_whole_from_any_chunking_with_fixed_lengths(
+        seq: int, accel: tuple[float, float, float], gyro: tuple[float, float, float],
+        cuts: list[int]) -> None:
+    # escaped payload bytes count once each: the length is checked on the unescaped message
+    message = m.ImuMessage(seq, accel, gyro).encode()
+    wire = tk3.encode_frame(message) * 2
+    points = sorted({min(c, len(wire)) for c in cuts})
+    sut = tk3.Tk3Parser(message_bytes_by_cmd=m.BOARD_MESSAGE_BYTES)
+    out: list[bytes] = []
+    for a, b in zip([0, *points], [*points, len(wire)], strict=True):
+        out += sut.feed(wire[a:b])
+    assert out == [message, message] and sut.stats.frame_errors == 0
