@@ -62,6 +62,7 @@ from groundstation.operator import (
     STATUS_STATE,
     post_transition,
 )
+from groundstation.signals import SUSPEND_REFUSED
 from groundstation.timing import LoopTimer, TimingSummary
 
 log = logging.getLogger(__name__)
@@ -289,6 +290,11 @@ class FlightLoop:
                     continue
                 end_reason = (f"Flight-Ctrl link lost ({lost_link})" if lost_link else
                               "IMU stream lost" if t0_s is not None else "no IMU stream")
+                if not lost_link and last_arrival_ns and age * 1e9 > self._longest_gap_ns:
+                    # the gap that ended the stream is the longest one (the summary's figure)
+                    self._longest_gap_ns = round(age * 1e9)
+                    self._counters["imu_gap_max_us"] = self._longest_gap_ns // 1000
+                    self._counters["imu_gap_max_at_ms"] = round(t_s * 1e3)
                 self.event_sink(f"{t_s:.3f} s {end_reason}: motors stopped (the board's "
                                 "watchdog stops them too)")
                 if not lost_link:
@@ -384,6 +390,10 @@ class FlightLoop:
                 self.requests.append(scripted.pop(0)[1])  # type: ignore[arg-type]
             while self.requests:
                 what = self.requests.popleft()
+                if what == SUSPEND_REFUSED:  # Ctrl-Z: told, not obeyed (groundstation.signals)
+                    self.event_sink(f"{t_s:.3f} s operator Ctrl-Z: refused, the ground station "
+                                    "keeps commanding the motors (Ctrl-C lands)")
+                    continue
                 _, why = sm.request(t_s, what)
                 self.event_sink(f"{t_s:.3f} s operator {what}: {why}")
             if sm.state is FlightState.PREFLIGHT and n % PREFLIGHT_CHECK_TICKS == 0:

@@ -17,6 +17,15 @@ while that thread holds the very lock (``threading.Event.set`` would deadlock th
 The children of a session are arranged so that these signals reach only the ground station's
 own process: the emulated vehicle runs in a session of its own, and the telemetry and servo
 processes ignore them (the ground station stops them in order after the flight).
+
+Job control would freeze a flight: Ctrl-Z (SIGTSTP, to the whole foreground group) stops the
+process that commands the motors every tick, and the Flight-Ctrl's watchdog then stops them in
+the air (seen: a realtime flight suspended at 0.8 m for 3.6 s fell, and ended "IMU stream lost"
+on ``fg``). A flight session therefore refuses to be suspended (``refuse_suspend``): Ctrl-Z is
+an event for the operator, not a stop, and the children that the terminal stopped with it are
+continued at once (they ignore it too once they run; the window is their start-up). SIGTTIN and
+SIGTTOU, which stop a background job touching the terminal, are ignored: its writes then go
+through.
 """
 
 from __future__ import annotations
@@ -34,17 +43,23 @@ from typing import Any
 
 #: the signals that ask a session to stop (land first, then cut)
 STOP_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+#: job control: suspend (Ctrl-Z), and the stops of a background job at the terminal
+JOB_CONTROL_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGTSTP, signal.SIGTTIN,
+                                                   signal.SIGTTOU)
 #: the same stop signal again within this many seconds is one request (``timeout`` sends two)
 REPEAT_WINDOW_S = 0.1
+#: what a refused Ctrl-Z puts in the loop's request queue (the loop tells the operator)
+SUSPEND_REFUSED = "suspend"
 
 
-def ignore_stop_signals() -> None:
-    """For a session's child processes: the ground station ends them, not the terminal.
+def ignore_stop_signals(*, job_control: bool = False) -> None:
+    """For a session's child processes: the ground station ends them, not the terminal;
+    ``job_control``: nor is it suspended by it (a flight session's children).
 
     A child started inside :func:`stop_signals_blocked` has had them blocked since its first
     instruction (a signal mask survives ``exec``); once ignored they are unblocked, and any that
     arrived meanwhile are discarded."""
-    for sig in STOP_SIGNALS:
+    for sig in STOP_SIGNALS + (JOB_CONTROL_SIGNALS if job_control else ()):
         with contextlib.suppress(OSError, ValueError):
             signal.signal(sig, signal.SIG_IGN)
     with contextlib.suppress(OSError, ValueError):
@@ -116,10 +131,15 @@ class StopSignals:
 
     ``requests`` is the deque the flight loop takes operator requests from: each signal
     appends ``"stop"`` (the state machine lands on the first and cuts on the second), except
-    the same signal repeated within ``REPEAT_WINDOW_S`` (counted, not a new request)."""
+    the same signal repeated within ``REPEAT_WINDOW_S`` (counted, not a new request).
+
+    ``refuse_suspend`` (a flight): Ctrl-Z appends ``SUSPEND_REFUSED`` instead of stopping the
+    process, and continues the process group (children the terminal stopped with it);
+    SIGTTIN and SIGTTOU are ignored (see the module doc)."""
 
     def __init__(self, requests: collections.deque[Any] | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, *,
+                 refuse_suspend: bool = False) -> None:
         self.requests: collections.deque[Any] = (requests if requests is not None
                                                  else collections.deque())
         self.count = 0
@@ -129,6 +149,8 @@ class StopSignals:
         self.repeats = 0  # signals taken as a repeat of the one before (REPEAT_WINDOW_S)
         self._requests = _Requests(clock)
         self.hangup = False  # SIGHUP: the terminal is gone, stop writing to it
+        self.refuse_suspend = refuse_suspend
+        self.suspends_refused = 0  # Ctrl-Z presses (SIGTSTP) taken as an event, not a stop
         self._previous: dict[int, Any] = {}
         self._rfd = self._wfd = -1
         self._previous_wakeup = -1
@@ -145,6 +167,12 @@ class StopSignals:
         else:
             self.requests.append("stop")
 
+    def _suspend_handler(self, signum: int, frame: FrameType | None) -> None:
+        self.suspends_refused += 1
+        self.requests.append(SUSPEND_REFUSED)
+        with contextlib.suppress(OSError):  # the children the terminal stopped with us
+            os.killpg(os.getpgrp(), signal.SIGCONT)
+
     def install(self) -> StopSignals:
         self._rfd, self._wfd = os.pipe()
         os.set_blocking(self._rfd, False)
@@ -152,6 +180,11 @@ class StopSignals:
         self._previous_wakeup = signal.set_wakeup_fd(self._wfd, warn_on_full_buffer=False)
         for sig in STOP_SIGNALS:
             self._previous[sig] = signal.signal(sig, self._handler)
+        if self.refuse_suspend:
+            self._previous[signal.SIGTSTP] = signal.signal(signal.SIGTSTP,
+                                                           self._suspend_handler)
+            for sig in (signal.SIGTTIN, signal.SIGTTOU):
+                self._previous[sig] = signal.signal(sig, signal.SIG_IGN)
         return self
 
     def restore(self) -> None:

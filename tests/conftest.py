@@ -34,10 +34,12 @@ from groundstation.configs import load_vehicle
 #: test modules (paths below tests/) whose every test runs alone: they assert on real time
 #: (rates, latencies, clock estimates, the 100 ms a kill may lose, IMU gaps on the host clock,
 #: servo reply timeouts); everything else shares the machine. The stop-signal tests
-#: (test_fly_signals, test_fly_sigint) share it: their flights are lockstep and each signal
-#: waits for the record to show the vehicle airborne, so a loaded machine only slows them,
-#: as a user's busy laptop would. Single tests of shared modules that run against a realtime
-#: device carry the ``exclusive`` marker themselves (test_bench_leave_devices' bench tests)
+#: (test_fly_signals, test_fly_sigint) share it: their lockstep flights wait for the record to
+#: show the vehicle airborne before each signal, so a loaded machine only slows them, as a
+#: user's busy laptop would. Single tests of shared modules that fly or run against a realtime
+#: device carry the ``exclusive`` marker themselves (test_bench_leave_devices' bench tests, the
+#: realtime flights of test_fly_signals and test_fly_emulated: two realtime flights side by
+#: side on two cores were seen to lose the IMU stream for 101 ms and cut)
 EXCLUSIVE_MODULES = frozenset({
     "hil/test_hil_flight_ctrl.py",
     "hil/test_hil_mocap.py",

@@ -1,7 +1,8 @@
 """``fasthex fly [SESSION]``: one flight session on real or emulated hardware.
 
 Preflight checks, arm, take off, fly the mission, land, disarm; failsafes on the way. Ctrl-C
-lands, a second Ctrl-C cuts the motors. The flight record is written as the flight goes.
+lands, a second Ctrl-C cuts the motors; Ctrl-Z is refused (the motors need a command every tick).
+The flight record is written as the flight goes.
 
 On a terminal, events (preflight results, state changes, faults) scroll as they happen above a
 live status line (:mod:`groundstation.console`); the end-of-flight summary follows
@@ -123,8 +124,9 @@ def run(args: argparse.Namespace) -> int:
                             realtime_settings=args.realtime_settings,
                             dashboard=args.rerun, mavlink=args.mavlink,
                             mavlink_key_file=args.mavlink_key_file, props_off=args.props_off)
-    # SIGINT (Ctrl-C), SIGTERM and SIGHUP: the first lands, a second cuts (groundstation.signals)
-    signals = StopSignals(session.requests).install()
+    # SIGINT (Ctrl-C), SIGTERM and SIGHUP: the first lands, a second cuts; Ctrl-Z is refused
+    # (a suspended ground station stops commanding the motors): groundstation.signals
+    signals = StopSignals(session.requests, refuse_suspend=True).install()
     session.stop_signals = signals
     if show:
         console.start()

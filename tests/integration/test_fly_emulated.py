@@ -16,13 +16,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from flight_support import SESSION, SHORT_MISSION, fly  # noqa: F401
+from flight_support import SESSION, SHORT_MISSION, fly
 from flight_support import can_hold_cpu_latency as can_request
 from flight_support import open_cpu_latency_requests as open_requests
 
+from controller.missions import Mission
+from groundstation.configs import load_mission, load_vehicle
 from groundstation.flight import FlightState
 from groundstation.record import read_record
-from groundstation.session import SessionOutcome
+from groundstation.session import FlightSession, SessionOutcome
+from groundstation.session_config import load_session
 
 
 def states(outcome: SessionOutcome) -> list[FlightState]:
@@ -215,3 +218,27 @@ def test_that_a_mocap_frame_is_decoded_and_fused_after_the_motor_command_of_its_
     assert len(fused) > 500  # ~11 s of 100 Hz MoCap
     assert all(t.startswith("s") and "d" in t and t.index("d") < t.index("f")
                for t in fused), [t for t in fused if not t.startswith("s")][:3]
+
+
+@pytest.mark.exclusive  # a realtime flight, its gaps on the host clock
+def test_that_the_gap_that_ends_a_realtime_stream_is_the_longest_gap_reported(
+        tmp_path: Path) -> None:
+    # Fixture: the same short session on the wall clock; 0.4 s of IMU samples lost on the wire
+    # from 3 s of the board's time (in flight), over the 0.1 s limit
+    (tmp_path / "short-hover.yaml").write_text(SHORT_MISSION)
+    path = tmp_path / "gap.yaml"
+    path.write_text(SESSION.format(seed=3, faults="imu-gap@3.0:0.4", corrupt=0.0, zmax=2.5,
+                                   servo_action="hold").replace("clock: lockstep",
+                                                                "clock: realtime"))
+    session = FlightSession(load_session(path), load_vehicle("fasthex"),
+                            Mission(load_mission(tmp_path / "short-hover.yaml")),
+                            record_path=tmp_path / "gap.fhr", echo_events=False)
+    # Test
+    out = session.run()
+    # Assert: the stream ended on that gap, and the summary's longest gap is it (before, only
+    # gaps a sample closed were counted: a 3.6 s freeze that ended a flight showed as 81 ms)
+    assert out.result.end_reason == "IMU stream lost"
+    (fault,) = [f for f in out.result.faults if "IMU stream lost" in f]
+    age_ms = float(fault.split("age ")[1].split(" ms")[0])
+    assert age_ms > 100.0
+    assert out.result.counters["imu_gap_max_us"] / 1e3 == pytest.approx(age_ms, abs=1.0)

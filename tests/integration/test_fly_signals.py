@@ -155,6 +155,7 @@ def test_that_ctrl_c_typed_in_the_terminal_lands(tmp_path: Path) -> None:
     flight.assert_nothing_left()
 
 
+@pytest.mark.exclusive  # a realtime flight: a loaded host's IMU gap would cut it
 def test_that_ctrl_c_in_a_realtime_flight_lands_and_its_servo_process_holds_on(
         tmp_path: Path) -> None:
     """A realtime flight serves its servo from a process of its own, in the same foreground
@@ -223,6 +224,7 @@ def test_that_closing_the_terminal_lands(tmp_path: Path) -> None:
     flight.assert_nothing_left()
 
 
+@pytest.mark.exclusive  # a realtime flight: a loaded host's IMU gap would cut it
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_that_a_second_signal_cuts(tmp_path: Path, sig: int) -> None:
     # realtime: a person's second press comes after the repeat window (0.1 s) and while the
@@ -242,4 +244,70 @@ def test_that_a_second_signal_cuts(tmp_path: Path, sig: int) -> None:
     assert "-> LANDING: operator: land" in events
     assert "-> CUT: operator: second stop request" in events, events
     assert "CUT -> DISARMED" in events
+    flight.assert_nothing_left()
+
+
+#: A job-control shell, as far as a test needs one: it runs the command as a foreground job
+#: (its own process group, the terminal's foreground), and when the job stops (Ctrl-Z) it says
+#: so and a second later continues it, as an operator typing ``fg`` would. (A ground station
+#: that is its terminal's session leader cannot be stopped by Ctrl-Z at all: the kernel
+#: discards the terminal's stop signals to an orphaned process group.)
+JOB_SHELL = r"""
+import os, signal, sys, time
+argv = sys.argv[1:]
+pid = os.fork()
+if pid == 0:
+    os.setpgid(0, 0)
+    os.execvp(argv[0], argv)
+os.setpgid(pid, pid)
+signal.signal(signal.SIGTTOU, signal.SIG_IGN)
+os.tcsetpgrp(0, pid)
+while True:
+    _, status = os.waitpid(pid, os.WUNTRACED)
+    if os.WIFSTOPPED(status):
+        print("[job stopped]", flush=True)
+        time.sleep(1.0)
+        os.tcsetpgrp(0, pid)
+        os.killpg(pid, signal.SIGCONT)
+        continue
+    sys.exit(os.waitstatus_to_exitcode(status))
+"""
+
+
+def _stopped_processes_mentioning(text: str) -> list[int]:
+    stopped = []
+    for pid in _processes_mentioning(text):
+        with contextlib.suppress(OSError):
+            stat = Path(f"/proc/{pid}/stat").read_text()
+            if stat[stat.rindex(")") + 2] in "Tt":
+                stopped.append(pid)
+    return stopped
+
+
+@pytest.mark.exclusive  # a realtime flight: a loaded host's IMU gap would cut it
+def test_that_ctrl_z_in_flight_is_refused_and_the_flight_goes_on(tmp_path: Path) -> None:
+    """Ctrl-Z sends SIGTSTP to the foreground job: a suspended ground station stops commanding
+    the motors, and the board's watchdog stops them in the air 0.25 s later (seen: a realtime
+    flight stopped at 0.8 m for 3.6 s fell and ended "IMU stream lost" on ``fg``). The flight
+    must go on, no process of the job may stay stopped (the servo process is in the group),
+    and the operator is told; Ctrl-C then lands as usual."""
+    flight = TerminalFlight(tmp_path, "ctrl-z", clock="realtime",
+                            prefix=(sys.executable, "-c", JOB_SHELL))
+    flight.wait_airborne()
+    os.write(flight.master, b"\x1a")  # Ctrl-Z, as typed: the line discipline sends SIGTSTP
+    n = _rows(flight.record)
+    deadline = time.monotonic() + 30.0
+    while (_rows(flight.record) < n + 500 and flight.proc.poll() is None
+           and time.monotonic() < deadline):  # a second of flight after it
+        time.sleep(0.05)
+    assert _stopped_processes_mentioning(str(flight.record)) == []
+    flight.type_ctrl_c()
+    assert flight.wait() == 1
+    output = flight.output.decode(errors="replace")
+    assert "[job stopped]" not in output, output
+    _assert_landed(flight, "SIGINT")
+    events = flight.events.read_text()
+    assert "operator Ctrl-Z: refused" in events, events
+    assert "servo fault" not in events and "IMU stream lost" not in events, events
+    assert "operator Ctrl-Z: refused" in output  # on the operator's screen too
     flight.assert_nothing_left()

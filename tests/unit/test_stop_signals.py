@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 
 from groundstation.signals import REPEAT_WINDOW_S, StopSignals
 
@@ -60,3 +62,32 @@ def test_that_repeats_do_not_stretch_the_window() -> None:
             clock.t_s += 0.6 * REPEAT_WINDOW_S
         assert list(signals.requests) == ["stop", "stop"]
         assert signals.repeats == 1
+
+
+REFUSE_SUSPEND_CHILD = r"""
+import os, signal
+from groundstation.signals import StopSignals
+with StopSignals(refuse_suspend=True) as s:
+    ignored = [signal.getsignal(x) is signal.SIG_IGN for x in (signal.SIGTTIN, signal.SIGTTOU)]
+    os.kill(os.getpid(), signal.SIGTSTP)  # Ctrl-Z: a process that obeyed would stop here
+    os.kill(os.getpid(), signal.SIGTTOU)  # a background job's write to the terminal
+    print(list(s.requests), s.suspends_refused, s.count, ignored)
+print(signal.getsignal(signal.SIGTSTP) is signal.SIG_DFL,
+      signal.getsignal(signal.SIGTTOU) is signal.SIG_DFL)
+"""
+
+
+def test_that_a_flight_refuses_ctrl_z_and_tells_the_loop() -> None:
+    # In a child: a test process that failed to refuse would stop, not fail (the parent's
+    # timeout then fails the test)
+    out = subprocess.run([sys.executable, "-c", REFUSE_SUSPEND_CHILD], capture_output=True,
+                         text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    # one event for the loop, not a stop request (count), the terminal stops ignored; all
+    # put back afterwards
+    assert out.stdout.splitlines() == ["['suspend'] 1 0 [True, True]", "True True"]
+
+
+def test_that_ctrl_z_is_left_alone_unless_asked() -> None:
+    with StopSignals():
+        assert signal.getsignal(signal.SIGTSTP) is signal.SIG_DFL
