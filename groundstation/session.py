@@ -199,9 +199,9 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
     go back to the session through ``notices`` (None: not shown), whose console prints them."""
     with contextlib.suppress(OSError):
         os.nice(10)
-    # the session ends us (stop event or its death), not the terminal; nor does Ctrl-Z
-    # suspend us (or the viewer we start) while the vehicle flies
-    ignore_stop_signals(job_control=True)
+    # the session ends us (stop event or its death), not the terminal; nor do Ctrl-\ and
+    # Ctrl-Z kill or suspend us (or the viewer we start) while the vehicle flies
+    ignore_stop_signals(flight=True)
     ring = TelemetryRing(RECORD_DTYPE, name=ring_name)
     writer = RecordWriter(record_path, metadata, keep_in_memory=False)
     pending_events: list[str] = []

@@ -21,11 +21,13 @@ processes ignore them (the ground station stops them in order after the flight).
 Job control would freeze a flight: Ctrl-Z (SIGTSTP, to the whole foreground group) stops the
 process that commands the motors every tick, and the Flight-Ctrl's watchdog then stops them in
 the air (seen: a realtime flight suspended at 0.8 m for 3.6 s fell, and ended "IMU stream lost"
-on ``fg``). A flight session therefore refuses to be suspended (``refuse_suspend``): Ctrl-Z is
-an event for the operator, not a stop, and the children that the terminal stopped with it are
+on ``fg``). A flight session therefore refuses to be suspended (``flight``): Ctrl-Z is an
+event for the operator, not a stop, and the children that the terminal stopped with it are
 continued at once (they ignore it too once they run; the window is their start-up). SIGTTIN and
 SIGTTOU, which stop a background job touching the terminal, are ignored: its writes then go
-through.
+through. Ctrl-\\ (SIGQUIT, to the whole group) would kill the ground station and its children
+by default, in the air, with the record cut short: in a flight it is one more stop signal,
+landing first and cutting second, as Ctrl-C.
 """
 
 from __future__ import annotations
@@ -43,6 +45,8 @@ from typing import Any
 
 #: the signals that ask a session to stop (land first, then cut)
 STOP_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+#: a flight's stop signals: also Ctrl-\ (its default action kills every process of the job)
+FLIGHT_STOP_SIGNALS: tuple[signal.Signals, ...] = (*STOP_SIGNALS, signal.SIGQUIT)
 #: job control: suspend (Ctrl-Z), and the stops of a background job at the terminal
 JOB_CONTROL_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGTSTP, signal.SIGTTIN,
                                                    signal.SIGTTOU)
@@ -52,14 +56,14 @@ REPEAT_WINDOW_S = 0.1
 SUSPEND_REFUSED = "suspend"
 
 
-def ignore_stop_signals(*, job_control: bool = False) -> None:
+def ignore_stop_signals(*, flight: bool = False) -> None:
     """For a session's child processes: the ground station ends them, not the terminal;
-    ``job_control``: nor is it suspended by it (a flight session's children).
+    ``flight``: nor does Ctrl-\\ or Ctrl-Z reach them (a flight session's children).
 
     A child started inside :func:`stop_signals_blocked` has had them blocked since its first
     instruction (a signal mask survives ``exec``); once ignored they are unblocked, and any that
     arrived meanwhile are discarded."""
-    for sig in STOP_SIGNALS + (JOB_CONTROL_SIGNALS if job_control else ()):
+    for sig in (FLIGHT_STOP_SIGNALS + JOB_CONTROL_SIGNALS) if flight else STOP_SIGNALS:
         with contextlib.suppress(OSError, ValueError):
             signal.signal(sig, signal.SIG_IGN)
     with contextlib.suppress(OSError, ValueError):
@@ -133,13 +137,13 @@ class StopSignals:
     appends ``"stop"`` (the state machine lands on the first and cuts on the second), except
     the same signal repeated within ``REPEAT_WINDOW_S`` (counted, not a new request).
 
-    ``refuse_suspend`` (a flight): Ctrl-Z appends ``SUSPEND_REFUSED`` instead of stopping the
-    process, and continues the process group (children the terminal stopped with it);
-    SIGTTIN and SIGTTOU are ignored (see the module doc)."""
+    ``flight``: SIGQUIT (Ctrl-\\) is a stop signal too; Ctrl-Z appends ``SUSPEND_REFUSED``
+    instead of stopping the process, and continues the process group (children the terminal
+    stopped with it); SIGTTIN and SIGTTOU are ignored (see the module doc)."""
 
     def __init__(self, requests: collections.deque[Any] | None = None,
                  clock: Callable[[], float] = time.monotonic, *,
-                 refuse_suspend: bool = False) -> None:
+                 flight: bool = False) -> None:
         self.requests: collections.deque[Any] = (requests if requests is not None
                                                  else collections.deque())
         self.count = 0
@@ -149,7 +153,7 @@ class StopSignals:
         self.repeats = 0  # signals taken as a repeat of the one before (REPEAT_WINDOW_S)
         self._requests = _Requests(clock)
         self.hangup = False  # SIGHUP: the terminal is gone, stop writing to it
-        self.refuse_suspend = refuse_suspend
+        self.flight = flight
         self.suspends_refused = 0  # Ctrl-Z presses (SIGTSTP) taken as an event, not a stop
         self._previous: dict[int, Any] = {}
         self._rfd = self._wfd = -1
@@ -178,9 +182,9 @@ class StopSignals:
         os.set_blocking(self._rfd, False)
         os.set_blocking(self._wfd, False)
         self._previous_wakeup = signal.set_wakeup_fd(self._wfd, warn_on_full_buffer=False)
-        for sig in STOP_SIGNALS:
+        for sig in FLIGHT_STOP_SIGNALS if self.flight else STOP_SIGNALS:
             self._previous[sig] = signal.signal(sig, self._handler)
-        if self.refuse_suspend:
+        if self.flight:
             self._previous[signal.SIGTSTP] = signal.signal(signal.SIGTSTP,
                                                            self._suspend_handler)
             for sig in (signal.SIGTTIN, signal.SIGTTOU):

@@ -956,9 +956,11 @@ def _run_worker(cfg: TiltServoConfig, mailbox: _Mailbox, conn: Any, stop: Any,
     if in_process:
         # Ctrl-C, SIGTERM and SIGHUP to the process group belong to the flight state machine
         # (land first): the servo process keeps holding the tilt until it is told to stop.
-        # Ctrl-Z (and a background job's terminal stops) would freeze it in flight: ignored.
+        # Ctrl-\ would kill it and Ctrl-Z (and a background job's terminal stops) freeze it
+        # in flight: ignored.
         stop_signals = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-        for sig in (*stop_signals, signal.SIGTSTP, signal.SIGTTIN, signal.SIGTTOU):
+        for sig in (*stop_signals, signal.SIGQUIT, signal.SIGTSTP, signal.SIGTTIN,
+                    signal.SIGTTOU):
             signal.signal(sig, signal.SIG_IGN)
         # the owner may have started us with them blocked (so that none kills us before
         # this point): ignored now, they can be let through

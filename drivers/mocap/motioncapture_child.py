@@ -220,8 +220,10 @@ def main(argv: list[str]) -> int:
     # Ctrl-C and a closed terminal are the parent's to handle; SIGTERM (its default action,
     # which needs no GIL) is how the parent ends us. A parent that started us with these
     # signals blocked (a session deferring its stop signals) must not defer our SIGTERM.
-    # Ctrl-Z (and a background job's terminal stops) would freeze the poses in flight.
-    for sig in (signal.SIGINT, signal.SIGHUP, signal.SIGTSTP, signal.SIGTTIN, signal.SIGTTOU):
+    # Ctrl-\ would kill us and Ctrl-Z (and a background job's terminal stops) freeze the poses
+    # in flight.
+    for sig in (signal.SIGINT, signal.SIGHUP, signal.SIGQUIT, signal.SIGTSTP, signal.SIGTTIN,
+                signal.SIGTTOU):
         signal.signal(sig, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGHUP, signal.SIGTERM})

@@ -124,9 +124,10 @@ def run(args: argparse.Namespace) -> int:
                             realtime_settings=args.realtime_settings,
                             dashboard=args.rerun, mavlink=args.mavlink,
                             mavlink_key_file=args.mavlink_key_file, props_off=args.props_off)
-    # SIGINT (Ctrl-C), SIGTERM and SIGHUP: the first lands, a second cuts; Ctrl-Z is refused
+    # SIGINT (Ctrl-C), SIGTERM, SIGHUP and SIGQUIT (Ctrl-\): the first lands, a second cuts;
+    # Ctrl-Z is refused
     # (a suspended ground station stops commanding the motors): groundstation.signals
-    signals = StopSignals(session.requests, refuse_suspend=True).install()
+    signals = StopSignals(session.requests, flight=True).install()
     session.stop_signals = signals
     if show:
         console.start()

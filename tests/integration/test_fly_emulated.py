@@ -235,10 +235,16 @@ def test_that_the_gap_that_ends_a_realtime_stream_is_the_longest_gap_reported(
                             record_path=tmp_path / "gap.fhr", echo_events=False)
     # Test
     out = session.run()
-    # Assert: the stream ended on that gap, and the summary's longest gap is it (before, only
-    # gaps a sample closed were counted: a 3.6 s freeze that ended a flight showed as 81 ms)
+    # Assert: the stream ended on that gap, and the summary's longest gap is at least it
+    # (before, only gaps a sample closed were counted: a 3.6 s freeze that ended a flight
+    # showed as 81 ms; a gap before the first sample is used may be longer on a loaded host)
     assert out.result.end_reason == "IMU stream lost"
     (fault,) = [f for f in out.result.faults if "IMU stream lost" in f]
-    age_ms = float(fault.split("age ")[1].split(" ms")[0])
+    age_ms = float(fault.split("age ")[1].split(" ms")[0])  # printed to the ms
     assert age_ms > 100.0
-    assert out.result.counters["imu_gap_max_us"] / 1e3 == pytest.approx(age_ms, abs=1.0)
+    counters = out.result.counters
+    assert counters["imu_gap_max_us"] / 1e3 >= age_ms - 0.5
+    if counters["imu_gap_max_at_ms"] > 0:  # not the start-up gap: then it is the ending one
+        assert counters["imu_gap_max_us"] / 1e3 == pytest.approx(age_ms, abs=0.5)
+        assert counters["imu_gap_max_at_ms"] / 1e3 == pytest.approx(
+            float(fault.split(" s:")[0]), abs=0.003)

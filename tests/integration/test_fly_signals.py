@@ -146,12 +146,17 @@ def _assert_landed(flight: TerminalFlight, signame: str) -> None:
     assert rows["pos_w_m"][-1][2] < 0.15  # on the ground (start height 0.1 m)
 
 
-def test_that_ctrl_c_typed_in_the_terminal_lands(tmp_path: Path) -> None:
-    flight = TerminalFlight(tmp_path, "ctrl-c")
+@pytest.mark.parametrize(("key", "signame"), [(b"\x03", "SIGINT"), (b"\x1c", "SIGQUIT")],
+                         ids=["ctrl-c", "ctrl-backslash"])
+def test_that_ctrl_c_typed_in_the_terminal_lands(tmp_path: Path, key: bytes, signame: str
+                                                 ) -> None:
+    # Ctrl-\ too: by default SIGQUIT kills every process of the job (the ground station in the
+    # air, its telemetry process with the record unfinished); in a flight it is a stop
+    flight = TerminalFlight(tmp_path, signame)
     flight.wait_airborne()
-    flight.type_ctrl_c()
+    os.write(flight.master, key)  # as typed: the line discipline signals the foreground group
     assert flight.wait() == 1  # landed early: not the planned end
-    _assert_landed(flight, "SIGINT")
+    _assert_landed(flight, signame)
     flight.assert_nothing_left()
 
 

@@ -67,17 +67,19 @@ def test_that_repeats_do_not_stretch_the_window() -> None:
 REFUSE_SUSPEND_CHILD = r"""
 import os, signal
 from groundstation.signals import StopSignals
-with StopSignals(refuse_suspend=True) as s:
+with StopSignals(flight=True) as s:
     ignored = [signal.getsignal(x) is signal.SIG_IGN for x in (signal.SIGTTIN, signal.SIGTTOU)]
     os.kill(os.getpid(), signal.SIGTSTP)  # Ctrl-Z: a process that obeyed would stop here
     os.kill(os.getpid(), signal.SIGTTOU)  # a background job's write to the terminal
     print(list(s.requests), s.suspends_refused, s.count, ignored)
-print(signal.getsignal(signal.SIGTSTP) is signal.SIG_DFL,
-      signal.getsignal(signal.SIGTTOU) is signal.SIG_DFL)
+    os.kill(os.getpid(), signal.SIGQUIT)  # Ctrl-\: by default a core dump
+    print(list(s.requests), s.count, s.describe())
+print(all(signal.getsignal(x) is signal.SIG_DFL
+          for x in (signal.SIGTSTP, signal.SIGTTOU, signal.SIGTTIN, signal.SIGQUIT)))
 """
 
 
-def test_that_a_flight_refuses_ctrl_z_and_tells_the_loop() -> None:
+def test_that_a_flight_refuses_ctrl_z_tells_the_loop_and_lands_on_ctrl_backslash() -> None:
     # In a child: a test process that failed to refuse would stop, not fail (the parent's
     # timeout then fails the test)
     out = subprocess.run([sys.executable, "-c", REFUSE_SUSPEND_CHILD], capture_output=True,
@@ -85,9 +87,11 @@ def test_that_a_flight_refuses_ctrl_z_and_tells_the_loop() -> None:
     assert out.returncode == 0, out.stderr
     # one event for the loop, not a stop request (count), the terminal stops ignored; all
     # put back afterwards
-    assert out.stdout.splitlines() == ["['suspend'] 1 0 [True, True]", "True True"]
+    assert out.stdout.splitlines() == ["['suspend'] 1 0 [True, True]",
+                                       "['suspend', 'stop'] 1 SIGQUIT", "True"]
 
 
-def test_that_ctrl_z_is_left_alone_unless_asked() -> None:
+def test_that_ctrl_z_and_ctrl_backslash_are_left_alone_unless_a_flight_asks() -> None:
     with StopSignals():
         assert signal.getsignal(signal.SIGTSTP) is signal.SIG_DFL
+        assert signal.getsignal(signal.SIGQUIT) is signal.SIG_DFL
