@@ -43,10 +43,12 @@ def _rows(path: Path) -> int:
 
 def _take_terminal() -> None:
     """In the child: a new session whose controlling terminal is the pty on fd 0, and the stop
-    signals as a shell leaves them for a foreground job (default action, not blocked)."""
+    and job-control signals as a shell leaves them for a foreground job (default action, not
+    blocked; a test run from a script's ``&`` inherits SIGINT and SIGQUIT ignored)."""
     os.setsid()
     fcntl.ioctl(0, termios.TIOCSCTTY, 0)
-    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGTSTP,
+                signal.SIGTTIN, signal.SIGTTOU):
         signal.signal(sig, signal.SIG_DFL)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, (signal.SIGINT, signal.SIGTERM, signal.SIGHUP))
 
