@@ -570,10 +570,10 @@ class FlightLoop:
 
         Lockstep stays deterministic on a loaded host: a sample that is only late (the
         emulator not yet scheduled) is waited for. Errors older than the last command do not
-        count, and the error count is read under the driver's receive lock, so a chunk whose
-        errors are seen has filed its samples too: one more look finds the sample if the
-        chunk carried it. (Taking a late sample for lost would send a second ``w`` and step
-        the vehicle twice: a different flight.)"""
+        count, and once an error is seen one more look for the sample (``wait_next`` takes the
+        driver's receive lock, so the chunk that carried the error is filed whole by then)
+        finds it if that chunk carried it. (Taking a late sample for lost would send a second
+        ``w`` and step the vehicle twice: a different flight.)"""
         if not self.opts.lockstep:
             return self.imu.wait_next(timeout_s)
         waited = 0.0

@@ -616,13 +616,13 @@ class FlightCtrl:
         every tick. A frame whose start byte was corrupted shows only as bytes outside any
         frame, so those count too.
 
-        Read under the receive lock: a chunk of bytes is filed whole, so a count that includes
-        a chunk's errors comes after the samples of that chunk are ready for :meth:`wait_next`
-        (the loop tells a lost sample from a late one by that order)."""
-        with self._cond:
-            stats = self._tk3.stats
-            return (stats.frame_errors + stats.garbage_bytes + self._malformed
-                    + self._implausible + self._timebase.rejected)
+        Read without the receive lock (it may show a chunk's errors while the reader is still
+        filing that chunk); :meth:`wait_next` takes the lock, so a call after the count changed
+        sees every sample of the chunk that changed it (the lockstep loop tells a lost sample
+        from a late one that way)."""
+        stats = self._tk3.stats
+        return (stats.frame_errors + stats.garbage_bytes + self._malformed + self._implausible
+                + self._timebase.rejected)
 
     def latest_imu(self) -> ImuSample | None:
         with self._cond:
