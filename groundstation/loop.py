@@ -290,11 +290,8 @@ class FlightLoop:
                     continue
                 end_reason = (f"Flight-Ctrl link lost ({lost_link})" if lost_link else
                               "IMU stream lost" if t0_s is not None else "no IMU stream")
-                if not lost_link and last_arrival_ns and age * 1e9 > self._longest_gap_ns:
-                    # the gap that ended the stream is the longest one (the summary's figure)
-                    self._longest_gap_ns = round(age * 1e9)
-                    self._counters["imu_gap_max_us"] = self._longest_gap_ns // 1000
-                    self._counters["imu_gap_max_at_ms"] = round(t_s * 1e3)
+                if not lost_link and last_arrival_ns:
+                    self._note_gap(round(age * 1e9), t_s)  # the gap that ended the stream
                 self.event_sink(f"{t_s:.3f} s {end_reason}: motors stopped (the board's "
                                 "watchdog stops them too)")
                 if not lost_link:
@@ -306,11 +303,7 @@ class FlightLoop:
             missing = 0
             if not opts.lockstep:
                 if last_arrival_ns:
-                    gap_ns = imu.arrival_t_ns - last_arrival_ns
-                    if gap_ns > self._longest_gap_ns:
-                        self._longest_gap_ns = gap_ns
-                        self._counters["imu_gap_max_us"] = gap_ns // 1000
-                        self._counters["imu_gap_max_at_ms"] = round(t_s * 1e3)
+                    self._note_gap(imu.arrival_t_ns - last_arrival_ns, t_s)
                 last_arrival_ns = imu.arrival_t_ns
             t_ns = imu.seq * self.period_ns if opts.lockstep else imu.t_ns
             gap_s = 0.0 if prev_seq is None else (imu.seq - prev_seq) * self.period_ns * 1e-9
@@ -555,6 +548,14 @@ class FlightLoop:
             self.imu.stop_motors()
         except DriverError as exc:
             log.warning("cannot send the motor stop: %s", exc)
+
+    def _note_gap(self, gap_ns: int, t_s: float) -> None:
+        """Keep the longest gap between IMU arrivals (realtime), and when it happened."""
+        if gap_ns > self._longest_gap_ns:
+            self._longest_gap_ns = gap_ns
+            self._counters["imu_gap_max_us"] = gap_ns // 1000
+            self._counters["imu_gap_max_at_ms"] = round(t_s * 1e3)
+
     def _command(self, spins_hz: tuple[float, ...]) -> None:
         """The rotor command (``w``). In lockstep it also steps the emulated board: the receive
         errors counted so far are noted first, so that those of the reply it triggers are

@@ -125,8 +125,7 @@ def run(args: argparse.Namespace) -> int:
                             dashboard=args.rerun, mavlink=args.mavlink,
                             mavlink_key_file=args.mavlink_key_file, props_off=args.props_off)
     # SIGINT (Ctrl-C), SIGTERM, SIGHUP and SIGQUIT (Ctrl-\): the first lands, a second cuts;
-    # Ctrl-Z is refused
-    # (a suspended ground station stops commanding the motors): groundstation.signals
+    # Ctrl-Z is refused (a suspended ground station stops commanding the motors)
     signals = StopSignals(session.requests, flight=True).install()
     session.stop_signals = signals
     if show:

@@ -7,8 +7,10 @@ A stopped sweep must say how many runs are in its table, exit 130 without a trac
 no process behind (its workers, the forkserver, Dask's nannies and workers) and leave a
 readable table with the rows it finished; the same command then flies only the missing runs.
 
-The campaign: 8 runs of the 1.6 s hop of ``test_sweep.py`` (2 gains x 2 tilts x 2 seeds). The
-tests wait on what the terminal shows (the progress line's count), not on time.
+The campaign: runs of the 1.6 s hop of ``test_sweep.py`` (2 gains x 2 tilts x its seeds): 8
+where the sweep runs to its end, more where it is stopped, so that a stop sent after the first
+runs cannot find every run already flown. The tests wait on what the terminal shows (the
+progress line's count), not on time.
 """
 
 from __future__ import annotations
@@ -65,17 +67,25 @@ parameters:
 seeds: [0, 1]
 """
 
-N_RUNS = 8
+N_RUNS = 8  # the campaign as written by default: 4 points x 2 seeds
+#: runs of the campaigns that are stopped before their end: a loaded host must not be able
+#: to fly them all between the stop being sent and it taking effect (with 8, CI once did)
+N_RUNS_STOPPED = 128
+#: runs of the campaign stopped three times and then flown to its end (its tail is flown)
+N_RUNS_RESUMED = 32
 PROGRESS = re.compile(r"hop-cli \[[#.]+\] (\d+)/(\d+) runs")
-INTERRUPTED = re.compile(r"fasthex: sweep interrupted: (\d+) of 8 runs are in (\S+) \((\d+) rows\)")
+INTERRUPTED = re.compile(r"fasthex: sweep interrupted: (\d+) of (\d+) runs are in (\S+) "
+                         r"\((\d+) rows\)")
 #: the environment variable every process of a sweep inherits (found again in /proc)
 TAG = "FASTHEX_SWEEP_CLI_TEST"
 
 
-def write_campaign(tmp_path: Path) -> Path:
+def write_campaign(tmp_path: Path, n_runs: int = N_RUNS) -> Path:
+    """The hop campaign (4 points) with as many seeds as give ``n_runs`` runs."""
+    assert n_runs % 4 == 0
     (tmp_path / "hop.yaml").write_text(HOP)
     path = tmp_path / "hop-cli.yaml"
-    path.write_text(CAMPAIGN)
+    path.write_text(CAMPAIGN.replace("seeds: [0, 1]", f"seeds: {list(range(n_runs // 4))}"))
     return path
 
 
@@ -200,7 +210,8 @@ def table_rows(path: Path) -> dict[str, dict[str, Any]]:
 
 
 def assert_interrupted_cleanly(sweep_: TerminalSweep, code: int, out: Path, at_least: int,
-                               shown: bool = True) -> dict[str, dict[str, Any]]:
+                               shown: bool = True, n_runs: int = N_RUNS_STOPPED,
+                               ) -> dict[str, dict[str, Any]]:
     """Exit 130, the message naming the rows (when the terminal is there to show it), no
     traceback, nothing left running, and a readable table (no journal of parts left) holding
     the rows said, every one flown."""
@@ -213,19 +224,21 @@ def assert_interrupted_cleanly(sweep_: TerminalSweep, code: int, out: Path, at_l
     if shown:
         found = INTERRUPTED.search(text)
         assert found is not None, text
-        in_table, name, n_rows = (int(found.group(1)), found.group(2), int(found.group(3)))
-        assert name == out.name and in_table == n_rows == len(rows)
-    assert at_least <= len(rows) < N_RUNS
+        in_table, total, name, n_rows = (int(found.group(1)), int(found.group(2)),
+                                         found.group(3), int(found.group(4)))
+        assert name == out.name and in_table == n_rows == len(rows) and total == n_runs
+    assert at_least <= len(rows) < n_runs
     assert all(r["verdict"] == "ok" and r["error"] is None for r in rows.values()), rows
     return rows
 
 
-def assert_screen(text: str, running_on: str) -> None:
+def assert_screen(text: str, running_on: str, n_runs: int = N_RUNS_STOPPED) -> None:
     """What the terminal shows of an interrupted sweep: its four lines, the progress line
     once (rewritten in place), the message on a line of its own."""
     lines = screen(text)
     assert len(lines) == 4, lines
-    assert lines[0].startswith("campaign hop-cli: 8 runs (1 scenario(s) x 4 point(s) x 2 seed")
+    assert lines[0].startswith(f"campaign hop-cli: {n_runs} runs (1 scenario(s) x 4 point(s) "
+                               f"x {n_runs // 4} seed")
     assert lines[1] == running_on
     assert PROGRESS.match(lines[2]) and "runs/min, elapsed" in lines[2]
     assert INTERRUPTED.match(lines[3])
@@ -233,8 +246,9 @@ def assert_screen(text: str, running_on: str) -> None:
 
 def test_that_a_pool_sweep_stops_cleanly_on_each_stop_signal_and_the_same_command_ends_it(
         tmp_path: Path) -> None:
-    # Fixture
-    write_campaign(tmp_path)
+    # Fixture: a campaign the three stops and the last sweep share
+    n_runs = N_RUNS_RESUMED
+    write_campaign(tmp_path, n_runs)
     out = tmp_path / "hop.parquet"
     command = ["hop-cli.yaml", "--workers", "2", "--out", out.name]
 
@@ -244,9 +258,9 @@ def test_that_a_pool_sweep_stops_cleanly_on_each_stop_signal_and_the_same_comman
     first.signal_group(signal.SIGINT)
     code = first.wait()
     # Assert
-    rows_1 = assert_interrupted_cleanly(first, code, out, at_least=seen)
+    rows_1 = assert_interrupted_cleanly(first, code, out, at_least=seen, n_runs=n_runs)
     # the progress line was rewritten in place: one line on the screen, drawn many times
-    assert_screen(first.text, "running on 2 local worker processes")
+    assert_screen(first.text, "running on 2 local worker processes", n_runs)
     assert first.text.count("\r\x1b[2K") >= 2
 
     # Test: the same command, SIGTERM to the group (timeout's way) once one more run is done
@@ -255,8 +269,9 @@ def test_that_a_pool_sweep_stops_cleanly_on_each_stop_signal_and_the_same_comman
     second.signal_group(signal.SIGTERM)
     code = second.wait()
     # Assert: the rows of the first sweep kept as they were, more of them now
-    assert f"{len(rows_1)} already in {out.name}, {N_RUNS - len(rows_1)} to fly" in second.text
-    rows_2 = assert_interrupted_cleanly(second, code, out, at_least=len(rows_1) + 1)
+    assert f"{len(rows_1)} already in {out.name}, {n_runs - len(rows_1)} to fly" in second.text
+    rows_2 = assert_interrupted_cleanly(second, code, out, at_least=len(rows_1) + 1,
+                                        n_runs=n_runs)
     assert all(same_bits(rows_2[rid], row) for rid, row in rows_1.items())
 
     # Test: the same command, and the terminal closed (SIGHUP) once one more run is done
@@ -266,7 +281,7 @@ def test_that_a_pool_sweep_stops_cleanly_on_each_stop_signal_and_the_same_comman
     code = third.wait()
     # Assert
     rows_3 = assert_interrupted_cleanly(third, code, out, at_least=len(rows_2) + 1,
-                                        shown=False)
+                                        shown=False, n_runs=n_runs)
     assert all(same_bits(rows_3[rid], row) for rid, row in rows_2.items())
 
     # Test: the same command once more, to the end
@@ -275,13 +290,13 @@ def test_that_a_pool_sweep_stops_cleanly_on_each_stop_signal_and_the_same_comman
     # Assert: only the missing runs flew
     text = last.text
     assert code == 0, text
-    assert f"{len(rows_3)} already in {out.name}, {N_RUNS - len(rows_3)} to fly" in text
-    assert (f"{out.name}: 8 runs (8 ok); flew {N_RUNS - len(rows_3)} now, {len(rows_3)} were "
-            "already there") in text
+    assert f"{len(rows_3)} already in {out.name}, {n_runs - len(rows_3)} to fly" in text
+    assert (f"{out.name}: {n_runs} runs ({n_runs} ok); flew {n_runs - len(rows_3)} now, "
+            f"{len(rows_3)} were already there") in text
     last.assert_no_process_left()
     rows = table_rows(out)
-    assert len(rows) == N_RUNS and sorted(r["run_index"] for r in rows.values()) == list(
-        range(N_RUNS))
+    assert len(rows) == n_runs and sorted(r["run_index"] for r in rows.values()) == list(
+        range(n_runs))
     assert all(same_bits(rows[rid], row) for rid, row in rows_3.items())
 
 
@@ -292,7 +307,7 @@ def test_that_sigterm_twice_at_once_stops_a_sweep_as_one_stop(tmp_path: Path) ->
     a loaded host). The second is the same stop, not a second interrupt in the middle of the
     first one's clean-up."""
     # Fixture
-    write_campaign(tmp_path)
+    write_campaign(tmp_path, N_RUNS_STOPPED)
     out = tmp_path / "hop.parquet"
     sweep_ = TerminalSweep(["hop-cli.yaml", "--workers", "2", "--out", out.name], tmp_path)
     seen = sweep_.wait_for_runs(1)
@@ -309,7 +324,7 @@ def test_that_sigterm_twice_at_once_stops_a_sweep_as_one_stop(tmp_path: Path) ->
 def test_that_ctrl_c_stops_a_dask_local_cluster_sweep_without_dask_tracebacks(
         tmp_path: Path) -> None:
     # Fixture
-    write_campaign(tmp_path)
+    write_campaign(tmp_path, N_RUNS_STOPPED)
     out = tmp_path / "dask.parquet"
     # Test
     sweep_ = TerminalSweep(["hop-cli.yaml", "--workers", "2", "--scheduler", "local", "--out",
