@@ -155,24 +155,35 @@ def _ppm_error(sigma_ppm: float) -> str:
     return f"+- {sigma_ppm:.0f} ppm" if math.isfinite(sigma_ppm) else "ppm (first estimate)"
 
 
+def prepared_computer(params: VehicleParams, mission: Mission) -> FlightComputer:
+    """The flight's mission, planner and controller, ready for a first tick that costs no more
+    than any other: its caches built at the planner's initial tilt (where the vehicle waits)
+    and its functions rehearsed (the interpreter's specialised bytecode)."""
+    computer = FlightComputer(params, mission)
+    computer.warm_up()
+    computer.rehearse()
+    return computer
+
+
 class FlightLoop:
     """Runs one flight session's ticks from the first IMU sample to the end."""
 
     def __init__(self, *, params: VehicleParams, mission: Mission, imu: ImuLink,
                  tilt: TiltLink, pose: PoseLink, estimator: Ukf, limits: SafetyLimits,
                  options: LoopOptions, row_sink: Callable[[tuple[Any, ...]], bool],
-                 event_sink: Callable[[str], None]) -> None:
+                 event_sink: Callable[[str], None],
+                 computer: FlightComputer | None = None) -> None:
+        """``computer``: one from :func:`prepared_computer` for this params and mission (a
+        session builds it before the IMU streams: its warm-up holds the interpreter for tens of
+        milliseconds); by default the loop prepares its own."""
         self.params = params
         self.mission = mission
         self.imu, self.tilt, self.pose = imu, tilt, pose
         self.ukf = estimator
         self.opts = options
         self.sm = FlightStateMachine(limits)
-        self.computer = FlightComputer(params, mission)
-        # the vehicle waits at the planner's initial tilt: the first step after arming finds
-        # its caches built
-        self.computer.warm_up()
-        self.computer.rehearse()  # the first control tick runs specialised bytecode
+        self.computer = computer if computer is not None else prepared_computer(params,
+                                                                                   mission)
         self._measured_interval = mission.measured_interval_s()
         # Take-off: the plan's take-off ends where its measured part starts; it waits there
         # (the mission clock stops) until the estimate is at that height (flight.py decides)

@@ -47,7 +47,7 @@ from drivers.mocap.uri import open_pose_source
 from estimator.ukf import Ukf
 from groundstation.flight import SafetyLimits
 from groundstation.gcs import GcsOptions, gcs_options, start_gcs
-from groundstation.loop import FlightLoop, LoopOptions, LoopResult
+from groundstation.loop import FlightLoop, LoopOptions, LoopResult, prepared_computer
 from groundstation.operator import STATUS_SIZE, STATUS_STATE
 from groundstation.record import RECORD_DTYPE, RecordWriter
 from groundstation.session_config import EmulatedBackend, HardwareBackend, SessionConfig
@@ -423,6 +423,14 @@ class FlightSession:
                 _open_device("mocap", mocap_uri, mocap.start)
             self._check_interrupted("connecting to the MoCap server")
             ukf = Ukf(_estimator_config(cfg, self.params))  # before the IMU streams
+            # the same for what holds the interpreter for tens of ms (numba's cache, the
+            # rehearsal; a full GC collection): once the IMU streams, the driver's thread
+            # must be free to take and timestamp each sample
+            computer = prepared_computer(self.params, self.mission)
+            if rt_settings:
+                from drivers.realtime import freeze_start_up_heap
+
+                freeze_start_up_heap()
             # The Flight-Ctrl last: once its IMU streams, an emulated board waits for `w` only
             # for its lockstep grace (then free-runs, and a run is no longer repeatable), so
             # nothing slow (the servo's start and configuration, the MoCap handshake) may come
@@ -467,7 +475,7 @@ class FlightSession:
                 options=LoopOptions(lockstep=lockstep, imu_rate_hz=backend.imu_rate_hz,
                                     ground_z_m=self.mission.start_pos_w_m[2],
                                     scripted_requests=self.scripted_requests),
-                row_sink=row_sink, event_sink=event_sink)
+                row_sink=row_sink, event_sink=event_sink, computer=computer)
             loop.shared_status = status
             loop.command_queue = commands
             if self.emulator is not None and isinstance(backend, EmulatedBackend) \
