@@ -162,6 +162,12 @@ def test_that_bad_missions_are_refused_naming_the_key(segments: str, key: str) -
     ("  - {kind: sine, duration_s: 5, axis: x, amplitude_m: 0.5, frequency_hz: 1}\n",
      "[0.0, 0.0, 0.1]", 6, "segments[0].amplitude_m",
      "peak acceleration A (2 pi f)^2 = 19.7 m/s^2; expected <= 9.81 m/s^2"),
+    # a land that touches down at 0.42 m/s (the old short hover's 0.75 m in 1.5 s): the
+    # estimator does not see the impact, and such a flight ends in the MoCap/IMU failsafe
+    ("  - {kind: takeoff, duration_s: 2, height_m: 0.8}\n"
+     "  - {kind: land, duration_s: 1.5}\n", "[0.0, 0.0, 0.1]", 7, "segments[1].duration_s",
+     "this land touches down (passes the start height) at 0.42 m/s; expected <= 0.25 m/s, as "
+     "the estimator does not see a harder impact (a longer duration_s or a smaller sink_m)"),
     # a start 1e9 m away is outside any workspace
     ("  - {kind: hold, duration_s: 1}\n", "[1e9, 0.0, 0.1]", 4, "start_pos_w_m[0]",
      "expected a number >= -100 and <= 100, got 1000000000.0"),
@@ -216,3 +222,38 @@ def test_that_a_climb_beyond_the_vehicles_thrust_is_refused() -> None:
     slow = load_config_text(text.replace("duration_s: 0.75", "duration_s: 1.0"), MissionSpec,
                             schema=MISSION_SCHEMA)
     check_mission_against_vehicle(slow, load_vehicle("fasthex"), "m.yaml", lines)
+
+
+@pytest.mark.parametrize(("height_m", "sink_m", "duration_s"), [
+    (0.5, 0.1, 4.0), (0.7, 0.05, 3.0), (0.9, 0.05, 6.0), (0.3, 0.2, 4.0), (2.0, 0.01, 4.0)])
+def test_that_the_touchdown_speed_is_the_references_descent_rate_at_the_start_height(
+        height_m: float, sink_m: float, duration_s: float) -> None:
+    # Fixture: a land from height_m above the start, sampled every 0.1 ms
+    from controller.missions import touchdown_speed_m_s
+
+    start_z = 0.1
+    m = _mission(f"  - {{kind: goto, duration_s: 10, pos_w_m: [0, 0, {start_z + height_m}]}}\n"
+                 f"  - {{kind: land, duration_s: {duration_s}, sink_m: {sink_m}}}\n")
+    # Test
+    speed = touchdown_speed_m_s(height_m, sink_m, duration_s)
+    # Assert: equal to the reference's own descent rate where it crosses the start height
+    t = 10.0
+    while m.reference(t).pos_w_m[2] > start_z:
+        t += 1e-4
+    assert speed == pytest.approx(-m.reference(t).vel_w_m_s[2], rel=2e-3)
+    assert touchdown_speed_m_s(height_m, 0.0, duration_s) == 0.0  # aims at the start: at rest
+    assert touchdown_speed_m_s(0.0, sink_m, duration_s) == 0.0    # starts on the ground
+
+
+def test_that_every_shipped_mission_touches_down_gently() -> None:
+    from controller.missions import MAX_TOUCHDOWN_SPEED_M_S
+
+    for name in SHIPPED:
+        m = Mission(load_mission(name))
+        start_z, t, fastest = m.start_pos_w_m[2], 0.0, 0.0
+        while t < m.duration_s:  # every crossing of the start height, going down
+            ref = m.reference(t)
+            if abs(ref.pos_w_m[2] - start_z) < 2e-3 and ref.vel_w_m_s[2] < 0.0:
+                fastest = max(fastest, -ref.vel_w_m_s[2])
+            t += 1e-3
+        assert 0.0 < fastest <= MAX_TOUCHDOWN_SPEED_M_S, (name, fastest)
