@@ -382,6 +382,17 @@ class FlightSession:
             fc_uri, servo_uri, mocap_uri = uris.flight_ctrl, uris.servo, uris.mocap
             zero_steps = uris.servo_zero_steps
 
+            # What holds the interpreter for tens of ms (numba's cache and the rehearsal of
+            # the controller; a full GC collection) before any device streams: a device's
+            # thread must be free to take and timestamp each sample (a MoCap frame held back
+            # at the stream's start reads as a server clock step)
+            computer = prepared_computer(self.params, self.mission)
+            if rt_settings:
+                from drivers.realtime import freeze_start_up_heap
+
+                freeze_start_up_heap()
+            self._check_interrupted("preparing the controller")
+
             # The devices first: a device that cannot be opened ends the session with one
             # line naming it, before any record exists.
             tilt = self.params.tilt
@@ -423,14 +434,6 @@ class FlightSession:
                 _open_device("mocap", mocap_uri, mocap.start)
             self._check_interrupted("connecting to the MoCap server")
             ukf = Ukf(_estimator_config(cfg, self.params))  # before the IMU streams
-            # the same for what holds the interpreter for tens of ms (numba's cache, the
-            # rehearsal; a full GC collection): once the IMU streams, the driver's thread
-            # must be free to take and timestamp each sample
-            computer = prepared_computer(self.params, self.mission)
-            if rt_settings:
-                from drivers.realtime import freeze_start_up_heap
-
-                freeze_start_up_heap()
             # The Flight-Ctrl last: once its IMU streams, an emulated board waits for `w` only
             # for its lockstep grace (then free-runs, and a run is no longer repeatable), so
             # nothing slow (the servo's start and configuration, the MoCap handshake) may come
