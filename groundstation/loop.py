@@ -396,7 +396,7 @@ class FlightLoop:
                 what = self.requests.popleft()
                 if what == SUSPEND_REFUSED:  # Ctrl-Z: told, not obeyed (groundstation.signals)
                     self.event_sink(f"{t_s:.3f} s operator Ctrl-Z: refused, the ground station "
-                                    "keeps commanding the motors (Ctrl-C lands)")
+                                    "keeps commanding the motors (Ctrl-C or Ctrl-\\ lands)")
                     continue
                 _, why = sm.request(t_s, what)
                 self.event_sink(f"{t_s:.3f} s operator {what}: {why}")
