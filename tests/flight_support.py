@@ -24,7 +24,7 @@ SHORT_MISSION = """\
 schema: fasthex.mission
 version: 1
 name: short-hover
-description: take off, hover through a tilt step, land (about 11 s)
+description: take off, hover through a tilt step, land (about 12.5 s)
 start_pos_w_m: [0.1, -0.1, 0.1]
 segments:
   - kind: takeoff
@@ -38,7 +38,7 @@ segments:
     duration_s: 4.0
     alpha: {kind: steps, times_s: [0.0, 1.0], values_deg: [0.0, 10.0]}
   - kind: land
-    duration_s: 3.0
+    duration_s: 4.5
     alpha: {kind: constant, value_deg: 0.0}
   - kind: hold
     duration_s: 0.5

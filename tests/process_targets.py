@@ -66,7 +66,7 @@ segments:
   - kind: hold
     duration_s: 60.0
   - kind: land
-    duration_s: 3.0
+    duration_s: 4.0
     alpha: {{kind: constant, value_deg: 0.0}}
 """
 SESSION = """\

@@ -39,7 +39,7 @@ segments:
       times_s: [0.0, 1.0]
       values_deg: [0.0, 25.0]
   - kind: land
-    duration_s: 2.5
+    duration_s: 3.5
     alpha: {kind: constant, value_deg: 0.0}
 """
 

@@ -57,7 +57,7 @@ segments:
     duration_s: 3.0
     alpha: {kind: steps, times_s: [0.0, 1.0], values_deg: [0.0, 10.0]}
   - kind: land
-    duration_s: 2.5
+    duration_s: 3.5
     alpha: {kind: constant, value_deg: 0.0}
   - kind: hold
     duration_s: 0.5
@@ -253,14 +253,16 @@ def test_that_a_mocap_dropout_just_over_the_timeout_lands_one_tick_after_the_lim
 
 def test_that_a_battery_just_under_its_limit_in_the_planned_landing_lands_here(
         tmp_path: Path, reference: Flight) -> None:
-    limit = reference.extremes["battery_min_v"] + 0.02
+    # the sagged pack reads within 0.03 V of the flight's minimum, which comes later, at the
+    # landing's higher load near the ground
+    limit = reference.extremes["battery_min_v"] + 0.03
     out = fly(tmp_path, "battery", REFERENCE_FAULTS, min_battery=limit)
     tr = out.fired("failsafe: battery low")
     # a failsafe in the mission's own landing: it gives up the planned path and lands here
     assert (tr.from_state, tr.to_state) == (FlightState.LANDING, FlightState.LANDING)
     volts = float(tr.reason.split("(")[1].split(" V")[0])
     assert reference.extremes["battery_min_v"] - 0.005 <= volts < limit
-    assert SAG_S < tr.t_s <= SAG_S + BATTERY_DELAY_S + 1e-9  # t_s is k * 2 ms in floats
+    assert SAG_S <= tr.t_s <= SAG_S + BATTERY_DELAY_S + 1e-9  # t_s is k * 2 ms in floats
     assert "LANDING -> LANDING: failsafe: battery low" in out.events
     at = out.rows["pos_w_m"][out.row_at(tr.t_s)]
     landed_near(out, at[:2], 0.05)

@@ -269,8 +269,8 @@ def test_that_the_shipped_short_hover_lands_without_a_failsafe_or_a_hop(
                             record_path=tmp_path / "shipped.fhr", echo_events=False)
     # Test
     out = session.run()
-    # Assert: the mission completes; after touchdown the vehicle stays within 3 cm of the
-    # ground (a 0.21 m/s touchdown hops ~1 cm, the 0.42 m/s one hopped 29 cm)
+    # Assert: the mission completes; after touchdown the vehicle stays within 2 cm of the
+    # ground (its 0.16 m/s touchdown hops 4-5 mm, the 0.42 m/s one hopped 29 cm)
     assert out.result.end_reason == "mission complete" and out.result.faults == [], \
         (out.result.end_reason, out.result.faults)
     rows = read_record(out.record_path).rows
@@ -278,4 +278,4 @@ def test_that_the_shipped_short_hover_lands_without_a_failsafe_or_a_hop(
     top = int(np.argmax(z))
     touchdown = top + int(np.argmax(z[top:] < mission.start_pos_w_m[2] + 5e-4))
     assert touchdown > top
-    assert z[touchdown:].max() < mission.start_pos_w_m[2] + 0.03
+    assert z[touchdown:].max() < mission.start_pos_w_m[2] + 0.02

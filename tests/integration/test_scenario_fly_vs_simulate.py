@@ -46,7 +46,7 @@ segments:
   - kind: hold
     duration_s: 7.0
   - kind: land
-    duration_s: 3.0
+    duration_s: 4.5
   - kind: hold
     duration_s: 0.5
     measured: false

@@ -30,7 +30,7 @@ segments:
   - kind: hold
     duration_s: 3.5
   - kind: land
-    duration_s: 2.0
+    duration_s: 3.0
 """
 
 SCENARIO = """\
