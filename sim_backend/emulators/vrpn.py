@@ -20,6 +20,7 @@ configurable. Vehicle calls are made under the shared ``lock``.
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
 import logging
 import selectors
@@ -43,6 +44,10 @@ log = logging.getLogger(__name__)
 _SENDER_ID = 0
 _TYPE_POS_QUAT = 0
 _TYPE_PONG = 1
+
+
+#: port 0: how many ephemeral TCP ports to try for one whose number is free for UDP too
+_PORT_ATTEMPTS = 20
 
 
 @dataclass(frozen=True)
@@ -113,6 +118,24 @@ class VrpnServer:
         """Connection requests that do not parse or name another host, corrupt client streams
         (the connection is dropped) and inputs whose handling failed (logged)."""
 
+    def _bind(self, port: int) -> None:
+        cfg = self.config
+        if cfg.accept != "classic":
+            self._tcp = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            self._tcp.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            self._tcp.bind((cfg.host, port))
+            self._tcp.listen(4)
+            port = self.port
+        if cfg.accept != "tcp":
+            self._udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            self._udp.bind((cfg.host, port))
+
+    def _close_listeners(self) -> None:
+        for s in (self._tcp, self._udp):
+            if s is not None:
+                s.close()
+        self._tcp = self._udp = None
+
     def __enter__(self) -> VrpnServer:
         self.start()
         return self
@@ -129,16 +152,18 @@ class VrpnServer:
 
     def start(self) -> None:
         cfg = self.config
-        port = cfg.port
-        if cfg.accept != "classic":
-            self._tcp = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-            self._tcp.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            self._tcp.bind((cfg.host, port))
-            self._tcp.listen(4)
-            port = self.port
-        if cfg.accept != "tcp":
-            self._udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            self._udp.bind((cfg.host, port))
+        # VRPN listens on one port number for both TCP and UDP. With port 0 the TCP socket
+        # takes a free ephemeral port, which a UDP socket of another program may hold: then
+        # take another one.
+        for attempt in range(_PORT_ATTEMPTS):
+            try:
+                self._bind(cfg.port)
+                break
+            except OSError as exc:
+                self._close_listeners()
+                if cfg.port != 0 or exc.errno != errno.EADDRINUSE \
+                        or attempt == _PORT_ATTEMPTS - 1:
+                    raise
         for s in (self._tcp, self._udp):
             if s is not None:
                 s.setblocking(False)

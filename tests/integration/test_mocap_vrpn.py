@@ -9,6 +9,7 @@ that knows nothing but the classic handshake; ``motioncapture`` checks the emula
 
 from __future__ import annotations
 
+import errno
 import math
 import re
 import socket
@@ -58,6 +59,47 @@ def test_that_our_client_reads_the_true_pose_from_the_vrpn_emulator() -> None:
         assert client.stats().malformed_packets == 0
         # the default handshake is the classic one: the server called us back
         assert (server.callbacks, server.direct_connections) == (1, 0)
+
+
+def test_that_an_ephemeral_port_taken_for_udp_is_traded_for_another(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Port 0: the TCP socket takes a free ephemeral port, whose number a UDP socket of
+    another program may hold (seen in the test suite: "Address already in use"); the server
+    then takes another port. The collision itself cannot be produced on demand: the first
+    binding attempt is made to meet one."""
+    # Fixture: the first attempt collides
+    real_bind = VrpnServer._bind
+    calls: list[int] = []
+
+    def bind(self: VrpnServer, port: int) -> None:
+        calls.append(port)
+        real_bind(self, port)
+        if len(calls) == 1:
+            raise OSError(errno.EADDRINUSE, "Address already in use")
+
+    monkeypatch.setattr(VrpnServer, "_bind", bind)
+    # Test
+    with VrpnServer(PosedVehicle(), VrpnEmulatorConfig(port=0, rate_hz=200.0)) as server, \
+            VrpnClient(VrpnConfig(port=server.port, latency_s=0.002)) as client:
+        # Assert: served on the second port, both ways
+        assert calls == [0, 0]
+        assert client.wait_frames(5, WAIT_S)
+        assert (server.callbacks, server.direct_connections) == (1, 0)
+
+
+def test_that_a_configured_port_in_use_is_an_error_not_another_port() -> None:
+    # Fixture: the port's number held for UDP
+    held = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    held.bind(("127.0.0.1", 0))
+    port = held.getsockname()[1]
+    try:
+        # Test / Assert
+        with pytest.raises(OSError) as exc_info, \
+                VrpnServer(PosedVehicle(), VrpnEmulatorConfig(port=port, rate_hz=200.0)):
+            pass
+        assert exc_info.value.errno == errno.EADDRINUSE
+    finally:
+        held.close()
 
 
 def test_that_a_silent_tracker_is_reported_missing_after_the_staleness_limit() -> None:
