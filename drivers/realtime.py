@@ -156,6 +156,12 @@ def freeze_start_up_heap() -> None:
     gc.freeze()
 
 
+def thaw_start_up_heap() -> None:
+    """Undo :func:`freeze_start_up_heap` (its objects collectable again): a process that goes
+    on after the flight, e.g. a campaign flying the next run."""
+    gc.unfreeze()
+
+
 def lock_memory() -> str:
     """Lock every present and future page of the process in RAM (no page fault in a tick).
     Call it before the device threads start: ``mlockall`` holds the process's memory map for

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import importlib
 import json
 import logging
 import multiprocessing as mp
@@ -44,6 +45,7 @@ from drivers.mocap.natnet_client import NatNetClient
 from drivers.mocap.pose import MocapError
 from drivers.mocap.qtm_client import QtmClient
 from drivers.mocap.uri import open_pose_source
+from drivers.realtime import freeze_start_up_heap, thaw_start_up_heap
 from estimator.ukf import Ukf
 from groundstation.flight import SafetyLimits
 from groundstation.gcs import GcsOptions, gcs_options, start_gcs
@@ -192,16 +194,32 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
                     events: Any, events_path: str, notices: Any, stop: Any,
                     dashboard_mode: str, rrd_path: str, params: VehicleParams,
                     mavlink: GcsOptions | None = None, status: Any = None,
-                    commands: Any = None) -> None:
+                    commands: Any = None, imported: Any = None, go: Any = None) -> None:
     """The telemetry process: ring -> flight record (+ rerun dashboard), event queue -> events
     file. Runs at a lower priority; the loop never waits for it. It never writes to the
     terminal itself: lines for the operator (the viewer's address, the MAVLink link's notices)
-    go back to the session through ``notices`` (None: not shown), whose console prints them."""
+    go back to the session through ``notices`` (None: not shown), whose console prints them.
+
+    Started first thing in a session, it imports what it will use and sets ``imported``, then
+    waits for ``go`` (the devices are open) before it makes anything: a session that ends in
+    its start-up leaves no record. ``stop`` or the session's death meanwhile ends it."""
     with contextlib.suppress(OSError):
         os.nice(10)
     # the session ends us (stop event or its death), not the terminal; nor do Ctrl-\ and
     # Ctrl-Z kill or suspend us (or the viewer we start) while the vehicle flies
     ignore_stop_signals(flight=True)
+    parent = os.getppid()
+    # the heavy imports now, while the session starts its devices, not in the first seconds of
+    # the flight
+    for module, wanted in (("rerun", dashboard_mode != "off"),
+                           ("groundstation.mavlink_bridge", mavlink is not None)):  # pymavlink
+        if wanted:
+            importlib.import_module(module)
+    if imported is not None:
+        imported.set()
+    while go is not None and not go.wait(0.1):
+        if stop.is_set() or os.getppid() != parent:
+            return
     ring = TelemetryRing(RECORD_DTYPE, name=ring_name)
     writer = RecordWriter(record_path, metadata, keep_in_memory=False)
     pending_events: list[str] = []
@@ -221,7 +239,6 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
     gcs = None if mavlink is None else start_gcs(mavlink, params, status, commands,
                                                  events_path, notice)
     with open(events_path, "a", encoding="utf-8") as ev:
-        parent = os.getppid()
         while True:
             # the session ended, or died (kill -9): either way, write out what the ring holds
             finished = stop.is_set() or os.getppid() != parent
@@ -331,6 +348,7 @@ class FlightSession:
         with stop_signals_blocked():
             resource_tracker.ensure_running()
         stop = ctx.Event()
+        tel_imported, tel_go = ctx.Event(), ctx.Event()
         events: Any = ctx.Queue(maxsize=10_000)
         status: Any = ctx.Array("d", STATUS_SIZE, lock=False)
         commands: Any = ctx.Queue(maxsize=100)
@@ -366,6 +384,29 @@ class FlightSession:
                 from drivers.realtime import lock_memory
 
                 settings["memory"] = lock_memory()
+            # The telemetry process first: its interpreter and imports (1-2 s of CPU; more with
+            # rerun or pymavlink) overlap the start-up of the emulator and the devices. Started
+            # just before the loop, it took a CPU from the loop (and the emulated board) for
+            # the first seconds of the flight: every pty write paid a preemption (100-150 us
+            # instead of 3-4 us). It makes nothing (no record) before `go`, below.
+            with stop_signals_blocked():  # the shared-memory tracker process starts here
+                ring = TelemetryRing(RECORD_DTYPE, capacity=1 << 14)
+            meta = {"session": cfg.name, "mission": self.mission.name,
+                    "vehicle": self.params.name, "backend": backend.kind,
+                    "clock": getattr(backend, "clock", "realtime"),
+                    "seed": getattr(backend, "seed", None),
+                    "preset": getattr(backend, "disturbances", None),
+                    "rate_hz": backend.imu_rate_hz,
+                    "measured_interval_s": self.mission.measured_interval_s(),
+                    "source": "fasthex fly"}
+            tel = ctx.Process(target=_telemetry_main, name="fasthex-telemetry",
+                              args=(ring.name, str(self.record_path), meta, events,
+                                    str(self.events_path), notices, stop,
+                                    dashboard_mode,
+                                    str(self.record_path.with_suffix(".rrd")), self.params,
+                                    self.mavlink, status, commands, tel_imported, tel_go))
+            with stop_signals_blocked():  # it ignores them once its interpreter is up
+                tel.start()
             if isinstance(backend, EmulatedBackend):
                 # Lockstep only (that is where it is merged into the record): its writes come
                 # from the emulated board's thread, and under disk pressure a page-cache write
@@ -387,10 +428,10 @@ class FlightSession:
             # thread must be free to take and timestamp each sample (a MoCap frame held back
             # at the stream's start reads as a server clock step)
             computer = prepared_computer(self.params, self.mission)
-            if rt_settings:
-                from drivers.realtime import freeze_start_up_heap
-
-                freeze_start_up_heap()
+            # Both clocks: the collections of the flight then walk only what was made since
+            # (a lockstep flight's GC is otherwise ~1.5 % of its wall time, a full collection
+            # ~50 ms); realtime disables the GC in flight besides (apply_realtime_settings).
+            freeze_start_up_heap()
             self._check_interrupted("preparing the controller")
 
             # The devices first: a device that cannot be opened ends the session with one
@@ -434,6 +475,7 @@ class FlightSession:
                 _open_device("mocap", mocap_uri, mocap.start)
             self._check_interrupted("connecting to the MoCap server")
             ukf = Ukf(_estimator_config(cfg, self.params))  # before the IMU streams
+            self._await_telemetry(tel, tel_imported)  # before the IMU streams too
             # The Flight-Ctrl last: once its IMU streams, an emulated board waits for `w` only
             # for its lockstep grace (then free-runs, and a run is no longer repeatable), so
             # nothing slow (the servo's start and configuration, the MoCap handshake) may come
@@ -448,25 +490,8 @@ class FlightSession:
             note(f"flight-ctrl: {ident.protocol} firmware {ident.firmware_id} on {where}")
             self._check_interrupted("opening the Flight-Ctrl")
 
-            with stop_signals_blocked():  # the shared-memory tracker process starts here
-                ring = TelemetryRing(RECORD_DTYPE, capacity=1 << 14)
-            meta = {"session": cfg.name, "mission": self.mission.name,
-                    "vehicle": self.params.name, "backend": backend.kind,
-                    "clock": getattr(backend, "clock", "realtime"),
-                    "seed": getattr(backend, "seed", None),
-                    "preset": getattr(backend, "disturbances", None),
-                    "rate_hz": backend.imu_rate_hz,
-                    "measured_interval_s": self.mission.measured_interval_s(),
-                    "source": "fasthex fly"}
             self.events_path.write_text("")
-            tel = ctx.Process(target=_telemetry_main, name="fasthex-telemetry",
-                              args=(ring.name, str(self.record_path), meta, events,
-                                    str(self.events_path), notices, stop,
-                                    dashboard_mode,
-                                    str(self.record_path.with_suffix(".rrd")), self.params,
-                                    self.mavlink, status, commands))
-            with stop_signals_blocked():  # it ignores them once its interpreter is up
-                tel.start()
+            tel_go.set()  # the record and the events file from now on
             if forwarder is not None:
                 forwarder.start()
             row_sink = ring.push_flat
@@ -551,6 +576,7 @@ class FlightSession:
                         merge_truth(self.record_path, truth_path, backend.imu_rate_hz)
             if self._tmp is not None:
                 self._tmp.cleanup()
+            thaw_start_up_heap()
 
 
     def _note_emulator_stats(self) -> None:
@@ -563,6 +589,20 @@ class FlightSession:
         with contextlib.suppress(OSError), self.events_path.open("a", encoding="utf-8") as ev:
             ev.write("emulated board at exit: " + ", ".join(
                 f"{k.replace('_', ' ')} {st[k]}" for k in keys if k in st) + "\n")
+
+    def _await_telemetry(self, tel: Any, imported: Any) -> None:
+        """Wait until the telemetry process has its imports (on a loaded host they can outlast
+        the devices' start-up); a stop signal meanwhile ends the session as in any start-up
+        stage."""
+        deadline = time.monotonic() + TELEMETRY_START_S
+        while not imported.wait(0.05):
+            self._check_interrupted("starting the telemetry process")
+            if not tel.is_alive():
+                raise SessionError(f"the telemetry process exited during start-up (exit code "
+                                   f"{tel.exitcode})")
+            if time.monotonic() > deadline:
+                raise SessionError("the telemetry process did not start within "
+                                   f"{TELEMETRY_START_S:.0f} s")
 
     def _check_interrupted(self, stage: str) -> None:
         """A stop signal during start-up ends the session there: nothing is armed yet."""
@@ -615,6 +655,8 @@ def _open_device(what: str, uri: str, open_it: Callable[[], T]) -> T:
 
 #: lockstep: how long the first servo cycle may take (the servo being configured)
 LOCKSTEP_SERVO_START_S = 20.0
+#: how long the telemetry process may take for its imports (a loaded host, a cold disk cache)
+TELEMETRY_START_S = 60.0
 #: props-off bench test: idle spin after the spin-up, seconds
 PROPS_OFF_SPIN_S = 3.0
 

@@ -51,7 +51,7 @@ import numpy as np
 from config import find_config
 from config.schema import load_config
 from controller.params import VEHICLE_SCHEMA, VehicleParams
-from drivers.realtime import apply_realtime_settings, settings_line
+from drivers.realtime import apply_realtime_settings, freeze_start_up_heap, settings_line
 from sim_backend.disturbances import DISTURBANCES_SCHEMA, DisturbancePreset
 from sim_backend.emulators.dynamixel_p1 import EmulatedMX28, Fault
 from sim_backend.emulators.flightctrl import (
@@ -454,6 +454,10 @@ def main(argv: list[str] | None = None) -> int:
         board_clock_ppm=args.board_clock_ppm, mocap_clock_offset_s=args.mocap_clock_offset_s,
         mocap_clock_ppm=args.mocap_clock_ppm, mocap=args.mocap, scenario=scenario,
     ))
+    # the set-up's heap collected and frozen before any device thread runs: the collections
+    # while it serves walk only what was made since (a full one would hold the interpreter,
+    # and the board's replies, for ~50 ms)
+    freeze_start_up_heap()
     stop = _StopFlags()
     # Handlers only set a flag; the C-level wake-up byte ends the main thread's wait at once.
     # (``threading.Event.set`` from a handler can deadlock on the lock the interrupted main

@@ -3,13 +3,15 @@
 
 from __future__ import annotations
 
+import multiprocessing as mp
+import os
 from pathlib import Path
 
 import pytest
-from flight_support import SHORT_MISSION
+from flight_support import SHORT_MISSION, short_session
 
 from groundstation.cli import main
-from groundstation.session import EmulatorProcess
+from groundstation.session import EmulatorProcess, FlightSession, SessionError
 from groundstation.session_config import EmulatedBackend
 
 HARDWARE = """\
@@ -75,3 +77,24 @@ def test_that_a_silent_mocap_server_is_one_line_naming_it(
     assert len(lines) == 1, err
     assert lines[0].startswith("fasthex: ") and "127.0.0.1:9" in lines[0], lines[0]
     assert "no SERVERINFO" in lines[0], lines[0]
+
+
+def test_that_a_telemetry_process_that_dies_in_start_up_is_one_clear_error(
+        tmp_path: Path) -> None:
+    """The session waits for the telemetry process's imports before the IMU streams; one that
+    exits instead (a broken install, killed by the OOM killer) ends the session with its exit
+    code, not a wait of a minute."""
+    # Fixture: a real process that exits at once with code 3, and its unset "imported" event
+    ctx = mp.get_context("spawn")
+    dead = ctx.Process(target=os._exit, args=(3,))
+    dead.start()
+    dead.join(30.0)
+    imported = ctx.Event()
+    session = FlightSession(*short_session(tmp_path), record_path=tmp_path / "r.fhr",
+                            echo_events=False)
+    # Test / Assert
+    with pytest.raises(SessionError, match=r"telemetry process exited during start-up "
+                                           r"\(exit code 3\)"):
+        session._await_telemetry(dead, imported)
+    imported.set()  # an imported one: no wait, no error
+    session._await_telemetry(dead, imported)

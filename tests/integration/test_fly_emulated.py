@@ -279,3 +279,52 @@ def test_that_the_shipped_short_hover_lands_without_a_failsafe_or_a_hop(
     touchdown = top + int(np.argmax(z[top:] < mission.start_pos_w_m[2] + 5e-4))
     assert touchdown > top
     assert z[touchdown:].max() < mission.start_pos_w_m[2] + 0.02
+
+
+def test_that_the_telemetry_process_is_up_before_the_imu_streams_and_writes_nothing_before(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The telemetry process's interpreter and imports (1-2 s of CPU) used to start right
+    before the loop: on two CPUs they took one from the loop and the emulated board for the
+    first seconds of every flight (each pty write then paid a preemption, 100-150 us instead
+    of 3-4 us; a short hover flew at 7x instead of 12x). It now starts first, and the
+    Flight-Ctrl (whose IMU stream starts the flight) opens only once its imports are done;
+    it makes no record before the devices are open."""
+    # Fixture: look at the session's children and the record when the Flight-Ctrl opens
+    import multiprocessing as mp
+
+    from drivers.mikrokopter.device import FlightCtrl
+
+    seen: list[tuple[list[str], bool]] = []
+    real_open = FlightCtrl.open.__func__  # type: ignore[attr-defined]
+
+    def open_and_look(cls: type[FlightCtrl], *args: object, **kwargs: object) -> FlightCtrl:
+        children = [p.name for p in mp.active_children()]
+        seen.append((children, (tmp_path / "flight.fhr").exists()))
+        return real_open(cls, *args, **kwargs)  # type: ignore[no-any-return]
+
+    monkeypatch.setattr(FlightCtrl, "open", classmethod(open_and_look))
+    # Test
+    out = fly(tmp_path)
+    # Assert: the telemetry process was there, its record not yet; the flight was recorded
+    assert len(seen) == 1
+    children, record_existed = seen[0]
+    assert "fasthex-telemetry" in children, children
+    assert not record_existed
+    assert out.result.end_reason == "mission complete"
+    assert len(read_record(out.record_path).rows) == out.result.ticks
+
+
+def test_that_a_session_leaves_the_garbage_collector_as_it_found_it(tmp_path: Path) -> None:
+    """A session collects and freezes its start-up heap (both clocks: the flight's collections
+    then walk only what was made since); a process that goes on after it (a campaign flying
+    its next run, a test suite) gets every object collectable again."""
+    import gc
+
+    # Fixture
+    assert gc.get_freeze_count() == 0 and gc.isenabled()
+    # Test
+    out = fly(tmp_path)
+    # Assert
+    assert out.result.end_reason == "mission complete"
+    assert gc.get_freeze_count() == 0
+    assert gc.isenabled()
