@@ -7,7 +7,8 @@ baseline it is judged against, measured in the same run.
   alone (UKF predict, a pose every 5th tick, the estimate as the loop reads it, the
   controller; no I/O): <= 1.5x.
 - Lockstep flight through the byte path, sim s per wall s (against ``simulate``, truth, of
-  the same mission: no bytes, no second process): >= 10x real time. Its floor on this
+  the same mission: no bytes, no second process), the median of three flights (one swings by
+  +-10 % with the host's load): >= 10x real time. Its floor on this
   machine: a bare pty round trip between two processes plus the numerics, per 2 ms tick
   (nothing else computed, no physics); the row says how far that floor allows.
 - The CPU wake-up latency: a flight holds it at 0 (``drivers.realtime``); the same lockstep
@@ -72,6 +73,7 @@ from sim_backend.simulator import FastHexSimulator
 ROOT = Path(__file__).resolve().parents[1]
 T = TypeVar("T")
 EXP1 = "exp1-hover-tilt-steps"
+LOCKSTEP_FLIGHTS = 3
 
 
 def row(figure: str, value: str, baseline: str, ratio: str, target: str, met: bool) -> None:
@@ -284,7 +286,10 @@ def main() -> int:
     sim_ukf = simulate_speed("ukf", None)
     with tempfile.TemporaryDirectory(prefix="fasthex-speed-") as d:
         tmp = Path(d)
-        lock = fly(tmp, "lockstep", 500.0, None)
+        # the lockstep flight three times: one flight swings by +-10 % with the host's load
+        locks = [fly(tmp, "lockstep", 500.0, None) for _ in range(LOCKSTEP_FLIGHTS)]
+        speeds = [(o.result.ticks / 500.0) / o.result.loop_wall_s for o in locks]
+        lock = locks[int(np.argsort(speeds)[len(speeds) // 2])]    # the median flight
         lock_idle = fly(tmp, "lockstep", 500.0, None, realtime_settings=False)
         lock_1k = fly(tmp, "lockstep", 1000.0, None)   # deterministic: tracking 1 kHz vs 500 Hz
         lock_errs = {500.0: pos_err_mm(lock.record_path), 1000.0: pos_err_mm(lock_1k.record_path)}
@@ -306,6 +311,8 @@ def main() -> int:
           f" us with the wake-up latency held, {waited_us[False]:.0f} us without; back to "
           f"back {base_us:.0f} us")
     lock_x = (lock.result.ticks / 500.0) / lock.result.loop_wall_s
+    print(f"lockstep flights: {', '.join(f'{x:.1f}x' for x in speeds)} (the median's timing "
+          "below)")
     idle_x = (lock_idle.result.ticks / 500.0) / lock_idle.result.loop_wall_s
     row("tick compute p50 (lockstep, byte path)", f"{t.compute_p50_ms * 1e3:.0f} us",
         f"numerics {base_us:.0f} us", f"{t.compute_p50_ms * 1e3 / base_us:.2f}x", "<= 1.5x",
@@ -316,7 +323,7 @@ def main() -> int:
     row("tick compute p50 against the numerics after the same wait",
         f"{t.compute_p50_ms * 1e3:.0f} us", f"numerics after a wait {waited_us[True]:.0f} us",
         f"{t.compute_p50_ms * 1e3 / waited_us[True]:.2f}x", "(the same wait)", True)
-    row("lockstep flight, byte path", f"{lock_x:.1f}x real time",
+    row(f"lockstep flight, byte path (median of {LOCKSTEP_FLIGHTS})", f"{lock_x:.1f}x real time",
         f"simulate truth {sim_truth:.1f}x", f"{lock_x / sim_truth:.2f}", ">= 10x",
         lock_x >= 10.0)
     row("lockstep flight, CPUs left to idle (--no-realtime-settings)", f"{idle_x:.1f}x",
