@@ -194,7 +194,8 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
                     events: Any, events_path: str, notices: Any, stop: Any,
                     dashboard_mode: str, rrd_path: str, params: VehicleParams,
                     mavlink: GcsOptions | None = None, status: Any = None,
-                    commands: Any = None, imported: Any = None, go: Any = None) -> None:
+                    commands: Any = None, imported: Any = None, go: Any = None,
+                    session_pid: int | None = None) -> None:
     """The telemetry process: ring -> flight record (+ rerun dashboard), event queue -> events
     file. Runs at a lower priority; the loop never waits for it. It never writes to the
     terminal itself: lines for the operator (the viewer's address, the MAVLink link's notices)
@@ -202,13 +203,15 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
 
     Started first thing in a session, it imports what it will use and sets ``imported``, then
     waits for ``go`` (the devices are open) before it makes anything: a session that ends in
-    its start-up leaves no record. ``stop`` or the session's death meanwhile ends it."""
+    its start-up leaves no record. ``stop`` or the session's death meanwhile ends it: the death
+    of ``session_pid`` (its parent), even before this process could look (it is then the
+    child of another process already, and its own parent's pid tells nothing)."""
     with contextlib.suppress(OSError):
         os.nice(10)
     # the session ends us (stop event or its death), not the terminal; nor do Ctrl-\ and
     # Ctrl-Z kill or suspend us (or the viewer we start) while the vehicle flies
     ignore_stop_signals(flight=True)
-    parent = os.getppid()
+    parent = os.getppid() if session_pid is None else session_pid
     # the heavy imports now, while the session starts its devices, not in the first seconds of
     # the flight
     for module, wanted in (("rerun", dashboard_mode != "off"),
@@ -404,7 +407,8 @@ class FlightSession:
                                     str(self.events_path), notices, stop,
                                     dashboard_mode,
                                     str(self.record_path.with_suffix(".rrd")), self.params,
-                                    self.mavlink, status, commands, tel_imported, tel_go))
+                                    self.mavlink, status, commands, tel_imported, tel_go,
+                                    os.getpid()))
             with stop_signals_blocked():  # it ignores them once its interpreter is up
                 tel.start()
             if isinstance(backend, EmulatedBackend):

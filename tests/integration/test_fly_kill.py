@@ -15,6 +15,7 @@ and in the truth (the estimate follows the truth to a few mm, ~10 ms at the clim
 
 from __future__ import annotations
 
+import contextlib
 import json
 import multiprocessing as mp
 import os
@@ -101,3 +102,65 @@ def test_that_kill_9_of_the_ground_station_loses_at_most_100_ms_and_stops_the_mo
     finally:
         if proc.is_alive():
             os.killpg(proc.pid, signal.SIGKILL)
+
+
+def _children(pid: int) -> dict[int, str]:
+    """The processes whose parent is ``pid``: pid -> command line."""
+    found: dict[int, str] = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+            if ppid == pid:
+                with open(f"/proc/{entry}/cmdline", "rb") as f:
+                    found[int(entry)] = f.read().replace(b"\0", b" ").decode(errors="replace")
+        except (OSError, IndexError, ValueError):
+            continue
+    return found
+
+
+def _running(pid: int) -> bool:
+    """Alive, not a zombie waiting to be reaped."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_that_kill_9_of_the_ground_station_in_its_start_up_leaves_no_telemetry_process(
+        tmp_path: Path) -> None:
+    """The telemetry process starts first in a session and imports for a second or so. A
+    ground station killed meanwhile (kill -9, the OOM killer) is dead before its child can
+    note its parent's pid: the child, given the session's pid, still sees it gone and exits
+    (reading its parent's pid itself, it took its new parent for the session and waited for
+    the flight forever)."""
+    from flight_support import fly_long_hover_in_this_process
+
+    # Fixture: a lockstep session in its own process
+    proc = mp.get_context("spawn").Process(target=fly_long_hover_in_this_process,
+                                           args=(str(tmp_path),))
+    proc.start()
+    assert proc.pid is not None
+    telemetry: list[int] = []
+    try:
+        def telemetry_started() -> bool:
+            telemetry[:] = [p for p, cmd in _children(proc.pid).items()  # type: ignore[arg-type]
+                            if "spawn_main" in cmd]
+            return bool(telemetry)
+
+        assert _wait_for(telemetry_started, 60.0, poll_s=0.005)
+        # Test: the ground station alone killed, its telemetry child still importing
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.join(timeout=10)
+        # Assert: the telemetry process ends of itself, and there is no record
+        assert _wait_for(lambda: not _running(telemetry[0]), 30.0)
+        assert not (tmp_path / "killed.fhr").exists()
+    finally:
+        if proc.is_alive():
+            os.kill(proc.pid, signal.SIGKILL)
+        for pid in telemetry:
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)
