@@ -8,10 +8,11 @@ Composition (the only place that knows which backend is in use):
 - ``hardware``: the URIs of the session file.
 
 Either way the same drivers are opened (``FlightCtrl``, ``TiltServo``, ``NatNetClient``), the
-UKF and the flight loop are built, and a telemetry process is started that drains the loop's
-shared-memory ring into the flight record (written every 100 ms, so a crash loses at most the
-last 100 ms) and writes the events (transitions, faults, preflight results) next to it as
-``<record>.events.txt``.
+UKF and the flight loop are built, and a telemetry process drains the loop's shared-memory ring
+into the flight record (written every 100 ms, so a crash loses at most the last 100 ms) and
+writes the events (transitions, faults, preflight results) next to it as
+``<record>.events.txt``. That process starts first (its imports overlap the devices' start-up,
+not the flight) and makes the record once the devices are open.
 """
 
 from __future__ import annotations
