@@ -13,8 +13,8 @@ baseline it is judged against, measured in the same run.
   (nothing else computed, no physics); the row says how far that floor allows.
 - The numerics once more on one CPU while another spins: in a lockstep flight the emulated
   board computes on the other CPU alongside the tick, and where CPUs slow each other (a
-  VM's vCPUs on one physical core: 1.5-1.7x measured on a 2-vCPU VM) the same code then runs
-  slower (informative row).
+  VM's vCPUs on one physical core: 1.5-1.7x at times on a 2-vCPU VM, none at others, as its
+  host placed them) the same code then runs slower (informative row).
 - The CPU wake-up latency: a flight holds it at 0 (``drivers.realtime``); the same lockstep
   flight with ``--no-realtime-settings`` (CPUs left to idle), and the numerics run after a
   pty round trip (the wait a lockstep tick follows) with and without the hold, show what a
