@@ -434,8 +434,8 @@ class FlightSession:
             # at the stream's start reads as a server clock step)
             computer = prepared_computer(self.params, self.mission)
             # Both clocks: the collections of the flight then walk only what was made since
-            # (a lockstep flight's GC is otherwise ~1.5 % of its wall time, a full collection
-            # ~50 ms); realtime disables the GC in flight besides (apply_realtime_settings).
+            # (in a lockstep flight they cost ~0.5 % of its time besides, and a full one
+            # 35-70 ms); realtime disables the GC in flight too (apply_realtime_settings).
             freeze_start_up_heap()
             self._check_interrupted("preparing the controller")
 
