@@ -194,9 +194,8 @@ class EmulatorProcess:
 def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
                     events: Any, events_path: str, notices: Any, stop: Any,
                     dashboard_mode: str, rrd_path: str, params: VehicleParams,
-                    mavlink: GcsOptions | None = None, status: Any = None,
-                    commands: Any = None, imported: Any = None, go: Any = None,
-                    session_pid: int | None = None) -> None:
+                    mavlink: GcsOptions | None, status: Any, commands: Any, imported: Any,
+                    go: Any, session_pid: int) -> None:
     """The telemetry process: ring -> flight record (+ rerun dashboard), event queue -> events
     file. Runs at a lower priority; the loop never waits for it. It never writes to the
     terminal itself: lines for the operator (the viewer's address, the MAVLink link's notices)
@@ -212,17 +211,15 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
     # the session ends us (stop event or its death), not the terminal; nor do Ctrl-\ and
     # Ctrl-Z kill or suspend us (or the viewer we start) while the vehicle flies
     ignore_stop_signals(flight=True)
-    parent = os.getppid() if session_pid is None else session_pid
     # the heavy imports now, while the session starts its devices, not in the first seconds of
     # the flight
     for module, wanted in (("rerun", dashboard_mode != "off"),
                            ("groundstation.mavlink_bridge", mavlink is not None)):  # pymavlink
         if wanted:
             importlib.import_module(module)
-    if imported is not None:
-        imported.set()
-    while go is not None and not go.wait(0.1):
-        if stop.is_set() or os.getppid() != parent:
+    imported.set()
+    while not go.wait(0.1):
+        if stop.is_set() or os.getppid() != session_pid:
             return
     ring = TelemetryRing(RECORD_DTYPE, name=ring_name)
     writer = RecordWriter(record_path, metadata, keep_in_memory=False)
@@ -245,7 +242,7 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
     with open(events_path, "a", encoding="utf-8") as ev:
         while True:
             # the session ended, or died (kill -9): either way, write out what the ring holds
-            finished = stop.is_set() or os.getppid() != parent
+            finished = stop.is_set() or os.getppid() != session_pid
             rows = ring.drain()
             if len(rows):
                 writer.append_block(rows)
