@@ -87,8 +87,8 @@ MAX_REF_ACCEL_M_S2 = 9.81
 #: angular-rate cap of an attitude reference (deg/s)
 MAX_REF_RATE_DEG_S = 360.0
 #: fastest touchdown of a ``land`` (m/s, the reference's descent rate where it passes the
-#: start height). The impact is not seen by the estimator: the accelerometer's 8 g full scale
-#: clips it and the driver drops a one-sample spike, so the estimate keeps descending at the
+#: start height). The impact is not seen by the estimator: the tk3 ``I`` frame clips it at
+#: 32.767 m/s^2 and the driver drops a one-sample spike, so the estimate keeps descending at the
 #: touchdown speed while MoCap shows the vehicle stopped, and the controller lifts the vehicle
 #: off again. Measured with the UKF on the short hover (paper-calibrated): a 0.42 m/s touchdown
 #: ended every emulated flight (6 seeds) in the "MoCap and IMU disagree" failsafe after a hop
@@ -449,6 +449,28 @@ class MissionSpec:
             _check_attitude_block(seg, c.duration, key)
             if isinstance(seg, _SAMPLED_KINDS) or seg.attitude is not None:
                 _check_sampled_limits(c, key)
+
+
+def check_ends_on_ground(spec_: MissionSpec) -> None:
+    """A mission to fly ends on the ground: a ``land``, then at most ``hold`` segments (on the
+    ground). A mission that ended in the air would leave the vehicle hovering at its last
+    reference (the ground station lands it by itself only as a failsafe) and ``simulate``
+    stops the motors there; a segment after a ``land`` other than a hold would climb from the
+    ground after the flight was taken for over. Checked where mission files are loaded to fly
+    or simulate: a mission spec alone may be a fragment (e.g. to test one segment kind)."""
+    lands = [i for i, seg in enumerate(spec_.segments) if isinstance(seg, LandSegment)]
+    if not lands:
+        last = len(spec_.segments) - 1
+        raise ConfigValueError(
+            f"segments[{last}]", f"the mission ends in the air (z = "
+            f"{Mission(spec_)._segments[-1].p1[2]:g} m): "
+            "expected a land segment at its end (then only hold segments)")
+    for i in range(lands[-1] + 1, len(spec_.segments)):
+        seg = spec_.segments[i]
+        if not isinstance(seg, HoldSegment):
+            raise ConfigValueError(
+                f"segments[{i}].kind", f"a {seg.kind} after the land: expected only hold "
+                "segments after the mission's last land (the vehicle is on the ground)")
 
 
 def _check_alpha_timing(seg: Segment, duration_s: float, key: str) -> None:

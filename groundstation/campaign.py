@@ -411,7 +411,7 @@ def build_configs(texts: dict[str, str | None], options: dict[str, Any], mission
     from controller.missions import MISSION_SCHEMA, Mission, MissionSpec
     from controller.params import VEHICLE_SCHEMA, VehicleParams
     from controller.trajectory_csv import mission_base_dir
-    from groundstation.configs import check_mission_against_vehicle
+    from groundstation.configs import check_mission_against_vehicle, check_mission_lands
     from sim_backend.disturbances import DISTURBANCES_SCHEMA, DisturbancePreset
     from sim_backend.scenario import (
         SCENARIO_SCHEMA,
@@ -430,6 +430,7 @@ def build_configs(texts: dict[str, str | None], options: dict[str, Any], mission
         mission_spec = load_config_text(texts["mission"] or "", MissionSpec,
                                         schema=MISSION_SCHEMA, file_label=label("mission"),
                                         lines=lines)
+    check_mission_lands(mission_spec, label("mission"), lines)
     check_mission_against_vehicle(mission_spec, vehicle, label("mission"), lines)
     mission = Mission(mission_spec)
     preset = load_config_text(texts["preset"] or "", DisturbancePreset,

@@ -6,7 +6,7 @@ import math
 from pathlib import Path
 
 from config import find_config
-from config.schema import load_config
+from config.schema import ConfigValueError, load_config
 from controller.params import VEHICLE_SCHEMA, VehicleParams
 
 DEFAULT_VEHICLE = "fasthex"
@@ -34,9 +34,22 @@ def load_mission(name_or_path: str | Path, *, vehicle: VehicleParams | None = No
     lines = {} if lines is None else lines
     with mission_base_dir(path.parent):  # trajectory CSV files are relative to the mission
         spec = load_config(path, MissionSpec, schema=MISSION_SCHEMA, versions=(1,), lines=lines)
+    check_mission_lands(spec, str(path), lines)
     if vehicle is not None:
         check_mission_against_vehicle(spec, vehicle, str(path), lines)
     return spec
+
+
+def check_mission_lands(mission: MissionSpec, file: str, lines: dict[str, int]) -> None:
+    """A mission file to fly ends on the ground (:func:`controller.missions.check_ends_on_ground`),
+    as an error at the mission's line."""
+    from config.schema import ConfigError, line_of
+    from controller.missions import check_ends_on_ground
+
+    try:
+        check_ends_on_ground(mission)
+    except ConfigValueError as exc:
+        raise ConfigError(file, line_of(lines, exc.key), exc.key, exc.message) from None
 
 
 def check_mission_against_vehicle(mission: MissionSpec, vehicle: VehicleParams, file: str,

@@ -80,6 +80,9 @@ class HealthSnapshot:
     mocap_consistent: bool = True
     #: what the servo driver says is wrong, named in a servo fault ("no reply", "stale", ...)
     servo_detail: str = ""
+    #: the mission (its planned landing with it) is over and the estimate has stayed off the
+    #: ground since: a planned landing that cannot end (the loop waits ENDED_ALOFT_S first)
+    ended_aloft: bool = False
 
 
 @dataclass(frozen=True)
@@ -174,6 +177,20 @@ class FlightStateMachine:
             return True, "session ended"
         return False, f"already {self.state.name}"
 
+    def limit(self, t_s: float, reason: str, *, cut: bool = False) -> None:
+        """A limit of the session itself (not an operator's request, not a health input): a
+        fault, then land where the vehicle is (``cut``: stop the motors). On the ground at idle
+        (ARMED) it disarms; with the motors off it does nothing."""
+        if self.state not in MOTORS_ON:
+            return
+        self._fault(t_s, reason)
+        if self.state is FlightState.ARMED:
+            self._go(t_s, FlightState.DISARMED, f"{reason}: disarmed before take-off")
+        elif cut:
+            self._cut(t_s, f"failsafe (cut): {reason}")
+        else:
+            self._land(t_s, f"failsafe: {reason}", here=True)
+
     # -- per tick -----------------------------------------------------------------------
     def update(self, t_s: float, h: HealthSnapshot) -> Directive:
         start = self.state
@@ -193,6 +210,12 @@ class FlightStateMachine:
             self._land(t_s, "mission complete", here=False)
         elif s is FlightState.LANDING and h.on_ground:
             self._go(t_s, FlightState.DISARMED, "touchdown")
+        elif s is FlightState.LANDING and h.ended_aloft and not self._land_here:
+            # mission files are checked to end on the ground: this is the last line of defence
+            # (a hover at the mission's last reference would last until the battery runs out)
+            what = "the mission ended with the vehicle in the air"
+            self._fault(t_s, what)
+            self._land(t_s, f"failsafe: {what}: landing here", here=True)
         elif s is FlightState.CUT and start is FlightState.CUT:  # one tick with motors off
             self._go(t_s, FlightState.DISARMED, "motors stopped")
         s = self.state

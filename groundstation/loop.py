@@ -90,6 +90,12 @@ IMU_RATE_MAX_COUNTED_GAP = 17
 LOCKSTEP_SERVO_WAIT_S = 4.0
 #: landing: O_B within 4 cm of its resting height this long -> touchdown confirmed, disarm
 TOUCHDOWN_CONFIRM_S = 0.4
+#: the mission over and O_B not within those 4 cm for this long -> failsafe landing here (a
+#: planned landing ends at the resting height; a vehicle still above it after this cannot be
+#: touching down by itself)
+ENDED_ALOFT_S = 1.0
+#: session time past ``max_flight_s`` after which a landing that has not touched down is cut
+TIME_LIMIT_CUT_S = 120.0
 #: lockstep: wall time after which a sample counts as lost, and the slice to check the link.
 #: A sample lost on the wire shows at once as a receive error; this only catches a silent
 #: board, so it is long: on a loaded host a reply can take 100 ms of wall time, and counting
@@ -237,6 +243,8 @@ class FlightLoop:
         alpha = 0.0
         servo_state = None
         ground_since_s: float | None = None
+        aloft_since_s: float | None = None   # the mission over, the estimate off the ground
+        time_limit_told = 0  # 1: the session time limit landed the vehicle, 2: it cut
         tick: ControlTick | None = None
         force_cmd_b: tuple[float, float, float] = (0.0, 0.0, 0.0)
         est_state = VehicleState((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0),
@@ -390,6 +398,7 @@ class FlightLoop:
                 battery_v = battery.voltage_v if battery is not None else math.inf
 
             # 4. operator requests, preflight and the state machine
+            n_transitions = len(sm.transitions)  # those of this tick: requests, limits, update
             while scripted and scripted[0][0] <= t_s:
                 self.requests.append(scripted.pop(0)[1])  # type: ignore[arg-type]
             while self.requests:
@@ -400,6 +409,16 @@ class FlightLoop:
                     continue
                 _, why = sm.request(t_s, what)
                 self.event_sink(f"{t_s:.3f} s operator {what}: {why}")
+            # the session's own time limit: land once (a stop request here would count as the
+            # operator's second one on the next tick and cut), cut a landing that never ends
+            # (before the update: its transition is acted on in this tick, as a request's is)
+            if t_s > opts.max_flight_s and time_limit_told < 1:
+                time_limit_told = 1
+                sm.limit(t_s, f"session time limit ({opts.max_flight_s:g} s)")
+            elif t_s > opts.max_flight_s + TIME_LIMIT_CUT_S and time_limit_told < 2:
+                time_limit_told = 2
+                sm.limit(t_s, f"no touchdown {TIME_LIMIT_CUT_S:g} s after the session time "
+                         "limit", cut=True)
             if sm.state is FlightState.PREFLIGHT and n % PREFLIGHT_CHECK_TICKS == 0:
                 timed_out = t_s > opts.preflight_timeout_s
                 if (t_s >= opts.min_preflight_s and estimator_ok) or timed_out:
@@ -432,16 +451,20 @@ class FlightLoop:
             spinning = self.imu.motors().all_spinning if sm.state is FlightState.ARMED else True
             on_ground = (sm.state is FlightState.LANDING and ground_since_s is not None
                          and t_s - ground_since_s > TOUCHDOWN_CONFIRM_S)
-            ground_since_s = (ground_since_s or t_s) if self._near_ground(est_state) else None
+            near_ground = self._near_ground(est_state)
+            ground_since_s = (ground_since_s or t_s) if near_ground else None
+            aloft_since_s = (aloft_since_s or t_s) if phase == "done" and not near_ground \
+                else None
             h = self._health(0.0, link_ok, t_s - self._last_pose_t_s, estimator_ok,
                              servo_health,
                              battery_v, est_state, on_ground, phase, spinning,
                              lifted_off=lifted_off, takeoff_reached=at_height,
                              mocap_consistent=self._mocap_consistent(t_s),
                              servo_detail=_servo_detail(servo_state)
-                             if servo_health is ServoHealth.FAULT else "")
+                             if servo_health is ServoHealth.FAULT else "",
+                             ended_aloft=aloft_since_s is not None
+                             and t_s - aloft_since_s >= ENDED_ALOFT_S)
             flying = sm.state in FLYING  # the extremes of this tick, added after the send
-            n_transitions = len(sm.transitions)
             directive = sm.update(t_s, h)
             # a failsafe in a planned landing stays LANDING but is a transition all the same
             if sm.state is not prev_state or len(sm.transitions) != n_transitions:
@@ -511,8 +534,6 @@ class FlightLoop:
                 if end_reason == "mission complete":
                     end_reason = cause
                 break
-            if t_s > opts.max_flight_s:
-                sm.request(t_s, "stop")
         return LoopResult(
             loop_wall_s=time.perf_counter() - wall_start if wall_start else 0.0,
             transitions=list(sm.transitions), faults=list(sm.faults),
@@ -720,7 +741,8 @@ class FlightLoop:
                 servo: ServoHealth, battery_v: float, est: VehicleState, on_ground: bool,
                 phase: Literal["takeoff", "mission", "land", "done"], spinning: bool,
                 lifted_off: bool = True, takeoff_reached: bool = True,
-                mocap_consistent: bool = True, servo_detail: str = "") -> HealthSnapshot:
+                mocap_consistent: bool = True, servo_detail: str = "",
+                ended_aloft: bool = False) -> HealthSnapshot:
         q = est.q_wb
         r33 = 1.0 - 2.0 * (q[1] * q[1] + q[2] * q[2])
         return HealthSnapshot(
@@ -730,6 +752,7 @@ class FlightLoop:
             on_ground=on_ground, mission_phase=phase, motors_spinning=spinning,
             lifted_off=lifted_off, takeoff_reached=takeoff_reached,
             mocap_consistent=mocap_consistent, servo_detail=servo_detail,
+            ended_aloft=ended_aloft,
         )
 
     def _mocap_consistent(self, t_s: float) -> bool:

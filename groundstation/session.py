@@ -504,6 +504,7 @@ class FlightSession:
                 estimator=ukf, limits=_limits(cfg, self.props_off),
                 options=LoopOptions(lockstep=lockstep, imu_rate_hz=backend.imu_rate_hz,
                                     ground_z_m=self.mission.start_pos_w_m[2],
+                                    max_flight_s=self.cfg.safety.session_time_limit_s,
                                     scripted_requests=self.scripted_requests),
                 row_sink=row_sink, event_sink=event_sink, computer=computer)
             loop.shared_status = status

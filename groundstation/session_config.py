@@ -117,6 +117,10 @@ class SafetyConfig:
                                     "this long -> abort, idle, disarm")
     takeoff_settle_timeout_s: float = spec(10.0, ge=1.0, le=60.0, doc="planned take-off "
                                            "over, take-off height not reached this long -> land")
+    # a battery lasts minutes; a day is a typo. Past it: land on the estimate, and a landing
+    # without touchdown TIME_LIMIT_CUT_S later is cut
+    session_time_limit_s: float = spec(3600.0, ge=10.0, le=86400.0, doc="session time from "
+                                       "the first IMU sample (preflight included) -> land")
 
     def __post_init__(self) -> None:
         for axis, (lo, hi) in enumerate(zip(self.geofence_min_m, self.geofence_max_m,
@@ -202,6 +206,7 @@ def load_session(name_or_path: str | Path) -> SessionConfig:
     mission = load_mission(mission_path, lines=mission_lines)
     check_mission_against_vehicle(mission, params, str(mission_path), mission_lines)
     _check_geofence(mission, session.safety, str(mission_path), mission_lines, path, lines)
+    _check_time_limit(mission, session.safety, path, lines)
     backend = session.backend
     if isinstance(backend, HardwareBackend):
         _check_servo_zero(backend, params.tilt.max_tilt_deg, params.tilt.worm_ratio, path, lines)
@@ -251,6 +256,23 @@ def _reference(session_path: Path, lines: dict[str, int], key: str, kind: str, r
         message = (f"no such {kind[:-1]} {ref!r} (shipped: "
                    f"{', '.join(available(kind)) or 'none'})")
     raise ConfigError(str(session_path), line, key, message) from None
+
+
+def _check_time_limit(mission: object, safety: SafetyConfig, path: Path,
+                      lines: dict[str, int]) -> None:
+    """The session time limit leaves room for the whole mission after the shortest preflight
+    (1 s) and the spin-up: otherwise every flight would end in the limit's failsafe."""
+    from controller.missions import Mission, MissionSpec
+
+    assert isinstance(mission, MissionSpec)
+    start_s = 1.0 + safety.spin_up_s
+    need_s = start_s + Mission(mission).duration_s
+    if safety.session_time_limit_s < need_s:
+        key = "safety.session_time_limit_s"
+        raise ConfigError(str(path), line_of(lines, key), key,
+                          f"{safety.session_time_limit_s:g} s ends the session before its "
+                          f"mission ({Mission(mission).duration_s:g} s after {start_s:g} s of "
+                          f"preflight and spin-up): expected >= {need_s:g} s")
 
 
 def _check_geofence(mission: object, safety: SafetyConfig, mission_file: str,

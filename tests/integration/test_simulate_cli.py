@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from config.schema import load_config_text
 from groundstation.cli import main
 from groundstation.record import read_record
 
@@ -104,24 +105,38 @@ segments:
 """
 
 
-def test_that_a_drop_from_hover_is_a_crash_with_the_free_fall_impact_speed(
+def test_that_a_mission_ending_in_the_air_is_refused(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    # Fixture: the motors stop at the mission's end, 1 m up, and the vehicle falls 0.9 m
+    # Fixture: a mission file without its land segment
     mission = tmp_path / "no-land.yaml"
     mission.write_text(_NO_LAND)
     # Test
-    code = main(["simulate", str(mission), "--preset", "ideal", "--json"])
-    captured = capsys.readouterr()
-    out = json.loads(captured.out)
+    code = main(["simulate", str(mission), "--preset", "ideal"])
+    err = capsys.readouterr().err
+    # Assert: one line at the last segment, nothing flown
+    assert code == 2
+    assert err.strip() == (f"fasthex: config error: {mission}:11: segments[1]: the mission "
+                           "ends in the air (z = 1 m): expected a land segment at its end "
+                           "(then only hold segments)")
+
+
+def test_that_a_drop_from_hover_is_a_crash_with_the_free_fall_impact_speed() -> None:
+    # Fixture: the motors stop at the mission's end, 1 m up, and the vehicle falls 0.9 m (a
+    # mission spec fragment: a mission file must end on the ground)
+    from controller.missions import MISSION_SCHEMA, Mission, MissionSpec
+    from groundstation.configs import load_disturbances, load_vehicle
+    from groundstation.simulation import simulate_flight
+
+    spec = load_config_text(_NO_LAND, MissionSpec, schema=MISSION_SCHEMA)
+    # Test
+    out = simulate_flight(load_vehicle(), Mission(spec), load_disturbances("ideal"))
     # Assert: v = sqrt(2 g h) for h = 0.9 m is 4.20 m/s (the spin-down, tau 30 ms, takes ~1 %)
-    assert code == 1
     assert out["verdict"] == "crash" and out["crash_kind"] == "impact"
     v = out["max_touchdown_speed_m_s"]
     assert v == pytest.approx(math.sqrt(2 * 9.81 * 0.9), rel=0.03)
     assert f"{v:.2f} m/s" in out["crash_reason"]
     assert out["crash_t_s"] == pytest.approx(5.0 + math.sqrt(2 * 0.9 / 9.81), abs=0.03)
     assert out["sim_time_s"] < 5.5  # the flight ended at the crash
-    assert captured.err.count("\n") == 1 and "CRASH: impact at" in captured.err
 
 
 def test_that_leaving_the_workspace_is_a_crash(capsys: pytest.CaptureFixture[str]) -> None:

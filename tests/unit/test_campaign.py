@@ -43,6 +43,8 @@ segments:
     alpha: {kind: constant, value_deg: 0.0}
   - kind: hold
     duration_s: 0.6
+  - kind: land
+    duration_s: 3.0
 """
 
 GUST = """\

@@ -330,3 +330,37 @@ def test_that_a_low_rate_at_the_imu_timeout_is_reported_as_the_rate() -> None:
     sm = _flying()
     sm.update(10.0, replace(OK, imu_age_s=0.05, imu_rate_ok=False))
     assert sm.faults == ["10.000 s: IMU rate below 80 % of the set rate"]
+
+
+def test_that_a_planned_landing_ended_aloft_lands_here_once() -> None:
+    sm = _flying()
+    sm.update(10.0, replace(OK, mission_phase="land"))
+    d = sm.update(12.0, replace(OK, mission_phase="done"))  # not yet judged ended aloft
+    assert (d.state, d.reference) == (FlightState.LANDING, ReferenceSource.MISSION)
+    d = sm.update(13.0, replace(OK, mission_phase="done", ended_aloft=True))
+    assert (d.state, d.reference) == (FlightState.LANDING, ReferenceSource.LAND_HERE)
+    sm.update(13.002, replace(OK, mission_phase="done", ended_aloft=True))
+    assert [(t.t_s, t.from_state, t.to_state, t.reason) for t in sm.transitions[-2:]] == [
+        (10.0, FlightState.MISSION, FlightState.LANDING, "mission complete"),
+        (13.0, FlightState.LANDING, FlightState.LANDING,
+         "failsafe: the mission ended with the vehicle in the air: landing here")]
+    assert sm.faults == ["13.000 s: the mission ended with the vehicle in the air"]
+
+
+def test_that_a_session_limit_lands_here_disarms_on_the_ground_or_cuts() -> None:
+    sm = _flying()
+    sm.limit(20.0, "session time limit (20 s)")
+    d = sm.update(20.0, OK)
+    assert (d.state, d.reference) == (FlightState.LANDING, ReferenceSource.LAND_HERE)
+    assert sm.transitions[-1].reason == "failsafe: session time limit (20 s)"
+    sm.limit(140.0, "no touchdown", cut=True)
+    assert sm.state is FlightState.CUT
+    assert sm.transitions[-1].reason == "failsafe (cut): no touchdown"
+    armed = FlightStateMachine(LIMITS)
+    armed.request(0.0, "arm")
+    armed.limit(0.5, "session time limit (0.5 s)")
+    assert armed.state is FlightState.DISARMED
+    assert armed.transitions[-1].reason == "session time limit (0.5 s): disarmed before take-off"
+    idle = FlightStateMachine(LIMITS)
+    idle.limit(0.5, "session time limit (0.5 s)")  # motors off: nothing to do
+    assert (idle.state, idle.transitions, idle.faults) == (FlightState.PREFLIGHT, [], [])

@@ -163,17 +163,21 @@ GOOD_CSV = "t_s,x_m,y_m,z_m,yaw_deg,pitch_deg,roll_deg,alpha_deg\n" + "".join(
     f"{10 * t / 8:.4f},0,0,{15 + t:.1f}\n" for t in np.arange(0.0, 8.01, 0.2))
 
 
+#: the land after the trajectory (a mission to fly ends on the ground)
+LAND_S = 4.0
+
+
 def _write(tmp_path: Path, csv_text: str, origin: str = "start") -> Path:
     (tmp_path / "traj.csv").write_text(csv_text)
     mission = tmp_path / "m.yaml"
     mission.write_text(HEAD + "segments:\n  - {kind: trajectory, file: traj.csv, origin: "
-                       f"{origin}}}\n")
+                       f"{origin}}}\n  - {{kind: land, duration_s: {LAND_S}}}\n")
     return mission
 
 
 def test_that_a_trajectory_file_is_splined_with_exact_derivatives(tmp_path: Path) -> None:
     m = Mission(load_mission(_write(tmp_path, GOOD_CSV)))
-    assert m.duration_s == pytest.approx(8.0)
+    assert m.duration_s == pytest.approx(8.0 + LAND_S)
     _check_derivatives(m, 0)
     _at_rest(m, 0)
     r = m.reference(4.0)  # a knot: the spline passes through the row
