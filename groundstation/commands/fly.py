@@ -49,7 +49,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         f"(default {DEFAULT_SESSION})")
     parser.add_argument("--clock", choices=("realtime", "lockstep"), default=None,
                         help="emulated backend: override the session's clock")
-    parser.add_argument("--seed", type=int, default=None, help="emulated backend: seed")
+    from groundstation.cli import seed_arg
+
+    parser.add_argument("--seed", type=seed_arg, default=None,
+                        help="emulated backend: seed, 0 .. 2^32-1")
     parser.add_argument("--record", default=None, metavar="PATH",
                         help="flight-record path; overrides the session's telemetry.record "
                         "(default flights/<session>-<time>.fhr)")

@@ -59,7 +59,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("mission", nargs="?", default=DEFAULT_MISSION,
                         help=f"mission name or YAML file (default {DEFAULT_MISSION})")
     parser.add_argument("--vehicle", default="fasthex", help="vehicle name or YAML file")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    from groundstation.cli import seed_arg
+
+    parser.add_argument("--seed", type=seed_arg, default=0,
+                        help="random seed, 0 .. 2^32-1 (default 0)")
     parser.add_argument("--preset", default="paper-calibrated",
                         help="disturbance preset name or YAML file (ideal, paper-calibrated)")
     parser.add_argument("--scenario", default=None, metavar="NAME|FILE",
