@@ -44,6 +44,7 @@ import argparse
 import json
 import math
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -84,7 +85,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="workspace box in m, world frame (default: the session default "
                         "geofence); leaving it is a crash")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
-    parser.add_argument("--log", default=None, metavar="FILE", help="write the flight record")
+    parser.add_argument("--log", default=None, metavar="FILE",
+                        help="write the flight record (missing folders created, as fly does)")
 
 
 def simulate(args: argparse.Namespace) -> dict[str, Any]:
@@ -117,9 +119,25 @@ def simulate(args: argparse.Namespace) -> dict[str, Any]:
                         f"{params.name!r} ({lo_deg:g} .. {hi_deg:g} deg)")
     for line in preflight_warnings(mission, params, tilt_override_rad=tilt):
         print(line, file=sys.stderr)
+    if args.log:
+        _check_log(Path(args.log))
     return simulate_flight(params, mission, preset, seed=args.seed, scenario=scenario,
                            estimator=args.estimator, duration_s=args.duration,
                            tilt_override_rad=tilt, crash_limits=limits, log_path=args.log)
+
+
+def _check_log(log: Path) -> None:
+    """Create the record's folder as ``fly`` does and the file itself: a bad path fails before
+    the flight, not after it."""
+    from groundstation.cli import UserError
+    from groundstation.commands.fly import make_record_folder
+
+    make_record_folder(log)
+    try:
+        log.open("wb").close()
+    except OSError as exc:
+        raise UserError(f"--log {log}: cannot write the flight record ({exc.strerror}); "
+                        "expected a file path") from None
 
 
 def _crash_limits(args: argparse.Namespace) -> CrashLimits:
