@@ -7,6 +7,9 @@ The controller is fed the simulator's true state plus the preset's estimation no
 ``_frac``) and optionally writes the flight record (``--log``, format in
 :mod:`groundstation.record`).
 
+The flight ends 0.5 s after the mission (the motors are off from its end); ``--duration``
+only shortens it.
+
 ``--scenario NAME|FILE`` flies a scenario (:mod:`sim_backend.scenario`): the simulator's plant
 overrides, scheduled disturbances and faults, timed in mission seconds; the same file an emulated
 session names in ``backend.scenario``.
@@ -70,7 +73,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="scenario: plant overrides, scheduled disturbances and faults "
                         "(times in mission seconds)")
     parser.add_argument("--duration", type=float, default=None, metavar="S",
-                        help="stop after S simulated seconds (default: the whole mission)")
+                        help="stop after S simulated seconds; only shortens the flight "
+                        "(default and longest: the whole mission and 0.5 s after it, the "
+                        "motors off)")
     parser.add_argument("--tilt-deg", type=float, default=None, metavar="DEG",
                         help="fly at this constant tilt instead of the mission's alpha profile")
     parser.add_argument("--estimator", choices=("truth", "ukf"), default="truth",
@@ -109,7 +114,7 @@ def simulate(args: argparse.Namespace) -> dict[str, Any]:
     if getattr(args, "scenario", None):
         scenario = load_scenario(args.scenario, vehicle=params,
                                  mission_duration_s=mission.duration_s)
-    if args.duration is not None and args.duration <= 0.0:
+    if args.duration is not None and not args.duration > 0.0:
         raise UserError(f"--duration must be positive, got {args.duration}")
     limits = _crash_limits(args)
     tilt = None if args.tilt_deg is None else math.radians(args.tilt_deg)

@@ -69,6 +69,26 @@ def test_that_a_nonpositive_duration_is_refused(capsys: pytest.CaptureFixture[st
     assert "--duration" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("duration", ["60", "1e9", "inf"])
+def test_that_a_duration_beyond_the_mission_ends_with_the_mission(
+        duration: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Fixture
+    log = tmp_path / "x.fhr"
+    # Test: short-hover is 9 s, landed at its end
+    code = main(["simulate", "short-hover", "--preset", "ideal", "--duration", duration,
+                 "--json", "--log", str(log)])
+    # Assert: the mission and its 0.5 s on the ground, as without --duration
+    assert code == 0
+    assert json.loads(capsys.readouterr().out)["sim_time_s"] == pytest.approx(9.5)
+    rows = read_record(log).rows
+    assert len(rows) == 4750 and rows["landed"][-1]
+
+
+def test_that_a_nan_duration_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["simulate", "--duration", "nan"]) == 2
+    assert capsys.readouterr().err == "fasthex: --duration must be positive, got nan\n"
+
+
 def test_that_the_log_folder_is_created_as_fly_creates_the_record_folder(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     # Fixture
