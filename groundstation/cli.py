@@ -22,6 +22,20 @@ class UserError(Exception):
     """A problem the user can fix (missing file, unknown device); printed without traceback."""
 
 
+def seed_arg(text: str) -> int:
+    """``type`` of every ``--seed``: the range of ``backend.seed`` in a session file."""
+    from groundstation.session_config import SEED_MAX
+
+    try:
+        seed = int(text)
+    except ValueError:
+        seed = -1
+    if not 0 <= seed <= SEED_MAX:
+        raise argparse.ArgumentTypeError(f"expected an integer 0 .. {SEED_MAX} (as backend.seed "
+                                         f"in a session file), got {text!r}")
+    return seed
+
+
 def _command_modules() -> list[ModuleType]:
     mods = []
     for info in sorted(pkgutil.iter_modules(commands_pkg.__path__), key=lambda i: i.name):

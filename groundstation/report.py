@@ -320,11 +320,15 @@ class ReportFiles:
 
 
 def write_report(record_path: str | Path, out_dir: str | Path) -> ReportFiles:
-    """Figure + metrics (JSON, markdown) of a flight record into ``out_dir`` (created)."""
+    """Figure + metrics (JSON, markdown) of a flight record into ``out_dir`` (created);
+    :class:`~groundstation.record.RecordFormatError` for a record without rows."""
     from groundstation.configs import load_vehicle
-    from groundstation.record import read_record
+    from groundstation.record import RecordFormatError, read_record
 
     record = read_record(record_path)
+    if not len(record.rows):
+        raise RecordFormatError(f"{record_path}: the record has no rows (a header only); "
+                                "nothing to report")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     meta = record.metadata

@@ -31,6 +31,8 @@ Vec3 = tuple[float, float, float]
 GEOFENCE_MARGIN_M = 0.1
 #: |x|, |y|, |z| of a geofence corner (m): the sane workspace of the missions
 WORKSPACE_M = 100.0
+#: the largest seed of the emulated vehicle (and of ``--seed``): numpy seeds are 32-bit
+SEED_MAX = 2**32 - 1
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -61,7 +63,7 @@ class EmulatedBackend:
 
     kind: Literal["emulated"]
     clock: Literal["realtime", "lockstep"] = spec("lockstep")
-    seed: int = spec(1, ge=0, le=2**32 - 1, doc="numpy seeds are 32-bit")
+    seed: int = spec(1, ge=0, le=SEED_MAX, doc="numpy seeds are 32-bit")
     disturbances: str = spec("paper-calibrated", doc="simulator preset (disturbances, sensor "
                              "noise, MoCap rate and latency): name or file")
     imu_rate_hz: float = spec(500.0, ge=100.0, le=2000.0, doc="IMU stream rate requested")

@@ -51,6 +51,9 @@ if TYPE_CHECKING:
     from estimator import EstimatorConfig
 
 CONTROL_RATE_HZ = 500.0
+#: a flight ends this long after its mission: the motors are off from the mission's end, so
+#: later ticks would only record the vehicle standing (or lying) where it came down
+AFTER_MISSION_S = 0.5
 
 SAFE_TOUCHDOWN_SPEED_M_S = 1.0
 """Fastest vertical speed at ground contact that still counts as a landing (m/s).
@@ -253,7 +256,8 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
                 ) -> FlightResult:
     """Fly ``mission`` in the simulator from rest on the ground, one row per tick to ``sink``.
 
-    ``duration_s`` cuts the flight short (default: the mission plus 0.5 s on the ground).
+    ``duration_s`` cuts the flight short; it never runs past its default, the mission plus
+    :data:`AFTER_MISSION_S` with the motors off.
     ``tilt_override_rad`` replaces the mission's alpha profile by a constant (comparisons).
     ``preroll_s`` runs the sensors and the state source that long on the ground with the motors
     off before the mission clock starts (an estimator's rest-period initialisation); the record
@@ -290,7 +294,9 @@ def fly_mission(params: VehicleParams, mission: Mission, preset: DisturbancePres
         meta["scenario"] = scenario.name
     writer: RowSink = sink if sink is not None else _NullSink()
     append_flat = writer.append_flat
-    end_s = duration_s if duration_s is not None else mission.duration_s + 0.5
+    end_s = mission.duration_s + AFTER_MISSION_S
+    if duration_s is not None:
+        end_s = min(end_s, duration_s)
     dt = 1.0 / CONTROL_RATE_HZ
     n_ticks = round(end_s * CONTROL_RATE_HZ)
     c_f = params.rotors.thrust_coeff_n_per_hz2

@@ -49,7 +49,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         f"(default {DEFAULT_SESSION})")
     parser.add_argument("--clock", choices=("realtime", "lockstep"), default=None,
                         help="emulated backend: override the session's clock")
-    parser.add_argument("--seed", type=int, default=None, help="emulated backend: seed")
+    from groundstation.cli import seed_arg
+
+    parser.add_argument("--seed", type=seed_arg, default=None,
+                        help="emulated backend: seed, 0 .. 2^32-1")
     parser.add_argument("--record", default=None, metavar="PATH",
                         help="flight-record path; overrides the session's telemetry.record "
                         "(default flights/<session>-<time>.fhr)")
@@ -111,11 +114,7 @@ def run(args: argparse.Namespace) -> int:
     for line in preflight_warnings(mission, params):  # before anything is armed
         print(line, file=sys.stderr)
     record = record_path(args.record, cfg.telemetry.record, path, cfg.name)
-    try:
-        record.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"cannot create the record's folder {record.parent}: "
-                        f"{exc.strerror}") from None
+    make_record_folder(record)
     show = not args.quiet and not args.json
     console = Console(sys.stderr, status=lambda: session.loop.status if session.loop else "")
     session = FlightSession(cfg, params, mission, record_path=record,
@@ -180,6 +179,17 @@ def record_path(cli: str | None, configured: str, session_file: Path, session: s
         path = path.expanduser()
         return path if path.is_absolute() else session_file.parent / path
     return Path("flights") / f"{session}-{stamp}.fhr"
+
+
+def make_record_folder(record: Path) -> None:
+    """Create the flight record's folder and its parents; a ``UserError`` if that fails."""
+    from groundstation.cli import UserError
+
+    try:
+        record.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot create the record's folder {record.parent}: "
+                        f"{exc.strerror}") from None
 
 
 def flight_summary(outcome: Any, params: Any, session: str) -> dict[str, Any]:

@@ -3,7 +3,8 @@
 Writes ``DIR/plots.png`` (eight stacked panels, red while under-actuated, green while fully
 actuated), ``DIR/metrics.json`` (the keys and values of ``fasthex simulate --json``'s metrics)
 and ``DIR/metrics.md`` (the same as a markdown table). ``DIR`` defaults to ``RECORD.report/``
-next to the record. Works on records of ``fasthex simulate --log`` and ``fasthex fly``.
+next to the record. Works on records of ``fasthex simulate --log`` and ``fasthex fly``; one
+without rows (a header only) is refused.
 """
 
 from __future__ import annotations

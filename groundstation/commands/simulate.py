@@ -7,6 +7,9 @@ The controller is fed the simulator's true state plus the preset's estimation no
 ``_frac``) and optionally writes the flight record (``--log``, format in
 :mod:`groundstation.record`).
 
+The flight ends 0.5 s after the mission (the motors are off from its end); ``--duration``
+only shortens it.
+
 ``--scenario NAME|FILE`` flies a scenario (:mod:`sim_backend.scenario`): the simulator's plant
 overrides, scheduled disturbances and faults, timed in mission seconds; the same file an emulated
 session names in ``backend.scenario``.
@@ -44,6 +47,7 @@ import argparse
 import json
 import math
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -59,14 +63,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("mission", nargs="?", default=DEFAULT_MISSION,
                         help=f"mission name or YAML file (default {DEFAULT_MISSION})")
     parser.add_argument("--vehicle", default="fasthex", help="vehicle name or YAML file")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    from groundstation.cli import seed_arg
+
+    parser.add_argument("--seed", type=seed_arg, default=0,
+                        help="random seed, 0 .. 2^32-1 (default 0)")
     parser.add_argument("--preset", default="paper-calibrated",
                         help="disturbance preset name or YAML file (ideal, paper-calibrated)")
     parser.add_argument("--scenario", default=None, metavar="NAME|FILE",
                         help="scenario: plant overrides, scheduled disturbances and faults "
                         "(times in mission seconds)")
     parser.add_argument("--duration", type=float, default=None, metavar="S",
-                        help="stop after S simulated seconds (default: the whole mission)")
+                        help="stop after S simulated seconds; only shortens the flight "
+                        "(default and longest: the whole mission and 0.5 s after it, the "
+                        "motors off)")
     parser.add_argument("--tilt-deg", type=float, default=None, metavar="DEG",
                         help="fly at this constant tilt instead of the mission's alpha profile")
     parser.add_argument("--estimator", choices=("truth", "ukf"), default="truth",
@@ -81,7 +90,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="workspace box in m, world frame (default: the session default "
                         "geofence); leaving it is a crash")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
-    parser.add_argument("--log", default=None, metavar="FILE", help="write the flight record")
+    parser.add_argument("--log", default=None, metavar="FILE",
+                        help="write the flight record (missing folders created, as fly does)")
 
 
 def simulate(args: argparse.Namespace) -> dict[str, Any]:
@@ -104,7 +114,7 @@ def simulate(args: argparse.Namespace) -> dict[str, Any]:
     if getattr(args, "scenario", None):
         scenario = load_scenario(args.scenario, vehicle=params,
                                  mission_duration_s=mission.duration_s)
-    if args.duration is not None and args.duration <= 0.0:
+    if args.duration is not None and not args.duration > 0.0:
         raise UserError(f"--duration must be positive, got {args.duration}")
     limits = _crash_limits(args)
     tilt = None if args.tilt_deg is None else math.radians(args.tilt_deg)
@@ -114,9 +124,25 @@ def simulate(args: argparse.Namespace) -> dict[str, Any]:
                         f"{params.name!r} ({lo_deg:g} .. {hi_deg:g} deg)")
     for line in preflight_warnings(mission, params, tilt_override_rad=tilt):
         print(line, file=sys.stderr)
+    if args.log:
+        _check_log(Path(args.log))
     return simulate_flight(params, mission, preset, seed=args.seed, scenario=scenario,
                            estimator=args.estimator, duration_s=args.duration,
                            tilt_override_rad=tilt, crash_limits=limits, log_path=args.log)
+
+
+def _check_log(log: Path) -> None:
+    """Create the record's folder as ``fly`` does and the file itself: a bad path fails before
+    the flight, not after it."""
+    from groundstation.cli import UserError
+    from groundstation.commands.fly import make_record_folder
+
+    make_record_folder(log)
+    try:
+        log.open("wb").close()
+    except OSError as exc:
+        raise UserError(f"--log {log}: cannot write the flight record ({exc.strerror}); "
+                        "expected a file path") from None
 
 
 def _crash_limits(args: argparse.Namespace) -> CrashLimits:

@@ -70,6 +70,59 @@ def test_that_a_nonpositive_duration_is_refused(capsys: pytest.CaptureFixture[st
     assert "--duration" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("duration", ["60", "1e9", "inf"])
+def test_that_a_duration_beyond_the_mission_ends_with_the_mission(
+        duration: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Fixture
+    log = tmp_path / "x.fhr"
+    # Test: short-hover is 9 s, landed at its end
+    code = main(["simulate", "short-hover", "--preset", "ideal", "--duration", duration,
+                 "--json", "--log", str(log)])
+    # Assert: the mission and its 0.5 s on the ground, as without --duration
+    assert code == 0
+    assert json.loads(capsys.readouterr().out)["sim_time_s"] == pytest.approx(9.5)
+    rows = read_record(log).rows
+    assert len(rows) == 4750 and rows["landed"][-1]
+
+
+def test_that_a_nan_duration_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["simulate", "--duration", "nan"]) == 2
+    assert capsys.readouterr().err == "fasthex: --duration must be positive, got nan\n"
+
+
+def test_that_the_log_folder_is_created_as_fly_creates_the_record_folder(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Fixture
+    log = tmp_path / "a" / "b" / "x.fhr"
+    # Test
+    code = main(["simulate", "short-hover", "--preset", "ideal", "--duration", "0.2",
+                 "--log", str(log)])
+    # Assert
+    assert code == 0
+    assert len(read_record(log)) == 100
+
+
+def test_that_a_log_path_that_is_a_folder_is_a_user_error(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["simulate", "short-hover", "--duration", "0.2", "--log", str(tmp_path)])
+    assert code == 2
+    assert capsys.readouterr().err == (f"fasthex: --log {tmp_path}: cannot write the flight "
+                                       "record (Is a directory); expected a file path\n")
+
+
+def test_that_a_log_folder_that_cannot_be_created_is_a_user_error(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Fixture: the folder would be below a file
+    (tmp_path / "f").write_text("")
+    # Test
+    code = main(["simulate", "short-hover", "--duration", "0.2", "--log",
+                 str(tmp_path / "f" / "x.fhr")])
+    # Assert
+    assert code == 2
+    assert capsys.readouterr().err == (f"fasthex: cannot create the record's folder "
+                                       f"{tmp_path / 'f'}: File exists\n")
+
+
 def test_that_the_ukf_can_fly_the_takeoff_on_the_simulated_sensors(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     # Fixture

@@ -54,4 +54,46 @@ def test_that_plots_are_written(tmp_path: Path, capsys: pytest.CaptureFixture[st
 
 def test_that_a_bad_step_is_a_user_error(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["analyze", "--step-deg", "0"]) == 2
-    assert capsys.readouterr().err == "fasthex: --step-deg must be positive, got 0.0\n"
+    assert capsys.readouterr().err == "fasthex: --step-deg must be at least 0.01 deg, got 0\n"
+
+
+@pytest.mark.parametrize("step", ["1e-9", "0.009", "nan"])
+def test_that_a_step_below_the_finest_grid_is_refused_before_any_work(
+        step: str, capsys: pytest.CaptureFixture[str]) -> None:
+    # Test: 1e-9 deg would be 35e9 grid rows (261 GiB)
+    code = main(["analyze", "--step-deg", step])
+    # Assert
+    assert code == 2
+    assert capsys.readouterr().err == (f"fasthex: --step-deg must be at least 0.01 deg, got "
+                                       f"{float(step):g}\n")
+
+
+def test_that_the_finest_step_is_accepted(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["analyze", "--vehicle", "fasthex-mini", "--step-deg", "0.01", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)["rows"]
+    assert len(rows) == 3001  # 0 .. 30 deg
+
+
+def test_that_plots_into_an_existing_file_is_a_user_error(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Fixture
+    existing = tmp_path / "existing.txt"
+    existing.write_text("notes\n")
+    # Test
+    code = main(["analyze", "--plots", str(existing)])
+    # Assert: one line, before the table; the file untouched
+    assert code == 2
+    out, err = capsys.readouterr()
+    assert out == ""
+    assert err == (f"fasthex: --plots {existing}: is a file; expected a folder for the PNG "
+                   "figures\n")
+    assert existing.read_text() == "notes\n"
+
+
+def test_that_plots_under_a_file_is_a_user_error(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "f").write_text("")
+    assert main(["analyze", "--plots", str(tmp_path / "f" / "plots")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"fasthex: --plots {tmp_path / 'f' / 'plots'}: cannot create the "
+                          "folder (") and err.count("\n") == 1

@@ -154,6 +154,18 @@ def test_that_the_record_path_comes_from_the_cli_then_the_session_then_the_defau
     assert default.parent == Path("flights") and default.name.startswith("s-")
 
 
+def test_that_a_record_folder_that_cannot_be_created_is_one_line_before_the_flight(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Fixture: the record's folder would be below a file
+    (tmp_path / "f").write_text("")
+    # Test
+    code = cli_main(["fly", "--quiet", "--record", str(tmp_path / "f" / "x.fhr")])
+    # Assert
+    assert code == 2
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        f"fasthex: cannot create the record's folder {tmp_path / 'f'}: File exists")
+
+
 def test_that_replay_progress_is_drawn_on_a_terminal_and_erased_at_the_end() -> None:
     from groundstation.commands.replay import Progress
 

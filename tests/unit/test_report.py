@@ -145,6 +145,20 @@ def test_that_report_on_a_file_that_is_not_a_record_is_a_user_error(
     assert cli_main(["report", str(tmp_path / "missing.fhr")]) == 2
 
 
+def test_that_report_on_a_record_without_rows_is_a_user_error(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Fixture: a record cut to its header (a flight that wrote no row)
+    record = tmp_path / "empty.fhr"
+    RecordWriter(record, {"mission": "synthetic", "vehicle": "fasthex"}).close()
+    # Test
+    code = cli_main(["report", str(record)])
+    # Assert: one line, and no report folder left behind
+    assert code == 2
+    assert capsys.readouterr().err == (f"fasthex: {record}: the record has no rows (a header "
+                                       "only); nothing to report\n")
+    assert not (tmp_path / "empty.fhr.report").exists()
+
+
 def test_that_event_lines_are_parsed_with_their_flight_time() -> None:
     text = ("flight-ctrl: tk3 firmware mkfl1.8 on /dev/x\n"
             "1.000 s PREFLIGHT -> ARMED: operator: arm\n"

@@ -197,3 +197,36 @@ def test_that_a_mavlink_key_file_is_relative_to_the_session_and_must_exist(
                                "'gcs.key' (relative to the session file)")
     (tmp_path / "gcs.key").write_text("a" * 64)
     assert load_session(path).telemetry.mavlink_key_file == str(tmp_path / "gcs.key")
+
+
+@pytest.mark.parametrize("command", ["fly", "simulate"])
+@pytest.mark.parametrize("seed", ["-5", str(2**32), "99999999999999999999", "x"])
+def test_that_a_cli_seed_outside_the_session_files_range_is_a_usage_error(
+        command: str, seed: str, capsys: pytest.CaptureFixture[str]) -> None:
+    from groundstation.cli import main
+
+    # Test: refused by the parser, before any flight or emulator starts
+    with pytest.raises(SystemExit) as exit_:
+        main([command, "--seed", seed])
+    # Assert
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err.splitlines()[-1]
+    assert err == (f"fasthex {command}: error: argument --seed: expected an integer 0 .. "
+                   f"{2**32 - 1} (as backend.seed in a session file), got {seed!r}")
+
+
+@pytest.mark.parametrize("command", ["fly", "simulate"])
+def test_that_the_cli_seed_range_ends_where_the_session_files_range_ends(
+        command: str, tmp_path: Path) -> None:
+    from groundstation.cli import build_parser
+
+    # Fixture: the session file's own bounds
+    session = tmp_path / "s.yaml"
+    session.write_text(GOOD.replace("  seed: 1\n", f"  seed: {2**32 - 1}\n"))
+    assert load_session(session).backend.seed == 2**32 - 1
+    session.write_text(GOOD.replace("  seed: 1\n", f"  seed: {2**32}\n"))
+    with pytest.raises(ConfigError, match="seed"):
+        load_session(session)
+    # Test / Assert: the CLI takes the same bounds
+    for seed in (0, 2**32 - 1):
+        assert build_parser().parse_args([command, "--seed", str(seed)]).seed == seed
