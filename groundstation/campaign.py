@@ -19,7 +19,9 @@ Each modified file is validated again, exactly as if it had been written that wa
 outside a field's range is a run whose row carries the config error, not a crashed campaign.
 
 Values: ``values: [...]`` (a list, any YAML values) or ``range: [lo, hi]`` (numbers) with
-``num`` points for a grid, ``log: true`` for log spacing and ``integer: true`` to round.
+``num`` points for a grid, ``log: true`` for log spacing and ``integer: true`` to round. A grid
+flies each point once: a value listed twice, or a ``num`` larger than the distinct integers
+its rounded range holds, is refused at load.
 Sampling (``sampling``): ``grid`` (the Cartesian product of every parameter's values),
 ``random`` (``samples`` points, each parameter drawn uniformly, or from its ``values``) or
 ``lhs`` (a Latin hypercube of ``samples`` points: each parameter's range cut in ``samples``
@@ -96,6 +98,12 @@ class Parameter:
                                        f"[{lo:g}, {hi:g}]")
             if self.log and lo <= 0.0:
                 raise ConfigValueError("range", "a log range needs lo > 0")
+            if self.integer and self.num is not None:  # a grid: its rounded points distinct
+                distinct = len(set(_grid_values(self)))
+                if distinct < self.num:
+                    raise ConfigValueError("num", f"num {self.num} integer values in "
+                                           f"[{lo:g}, {hi:g}] repeat: at most {distinct} "
+                                           "distinct")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -197,6 +205,11 @@ class CampaignSpec:
                 if p.range is not None and p.num is None:
                     raise ConfigValueError(f"parameters[{i}].num",
                                            "a grid over a range needs num (points)")
+                values = p.values or ()
+                for j, value in enumerate(values):
+                    if value in values[:j]:  # the same point twice: one run_id flown twice
+                        raise ConfigValueError(f"parameters[{i}].values",
+                                               f"{_short(value)} is listed twice")
             if self.samples is not None:
                 raise ConfigValueError("samples", "a grid has its size from the parameters; "
                                        "samples is for random and lhs")

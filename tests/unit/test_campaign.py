@@ -301,15 +301,33 @@ def test_that_a_log_range_is_geometric_and_rounded_to_12_digits() -> None:
     assert third[1]["vehicle.a"] == float(f"{math.sqrt(2.0):.12g}")
 
 
-def test_that_integer_rounds_to_ints_and_may_repeat() -> None:
-    points = sample_points(spec(Parameter(path="vehicle.a", range=(0.0, 3.0), num=5,
+def test_that_integer_rounds_to_ints() -> None:
+    points = sample_points(spec(Parameter(path="vehicle.a", range=(0.0, 6.0), num=5,
                                           integer=True)))
     values = [p["vehicle.a"] for p in points]
-    assert values == [0, 1, 2, 2, 3]  # 0, 0.75, 1.5, 2.25, 3 rounded half to even
+    assert values == [0, 2, 3, 4, 6]  # 0, 1.5, 3, 4.5, 6 rounded half to even
     assert all(type(v) is int for v in values)
     drawn = sample_points(spec(Parameter(path="vehicle.a", range=(1.0, 100.0), integer=True,
                                          log=True), sampling="random", samples=50))
     assert all(type(p["vehicle.a"]) is int and 1 <= p["vehicle.a"] <= 100 for p in drawn)
+
+
+@pytest.mark.parametrize(("parameter", "key", "message"), [
+    ("{path: vehicle.controller.ki_pos, range: [10.0, 11.0], num: 5, integer: true}",
+     "parameters[0].num", "num 5 integer values in [10, 11] repeat: at most 2 distinct"),
+    ("{path: vehicle.controller.ki_pos, range: [0.6, 2.4], num: 3, integer: true}",
+     "parameters[0].num", "num 3 integer values in [0.6, 2.4] repeat: at most 2 distinct"),
+    ("{path: vehicle.controller.ki_pos, values: [10.0, 20.0, 10]}",
+     "parameters[0].values", "10 is listed twice"),
+])
+def test_that_a_grid_whose_points_repeat_is_a_config_error_at_its_line(
+        tmp_path: Path, parameter: str, key: str, message: str) -> None:
+    # the same point twice is the same run_id flown twice, counted twice by the sweep
+    text = VALID.replace("  - path: vehicle.controller.ki_pos\n    range: [5.0, 50.0]\n"
+                         "    num: 3\n    log: true\n", f"  - {parameter}\n")
+    result = load_text(tmp_path, text)
+    assert isinstance(result, ConfigError), result
+    assert (result.line, result.key, result.message) == (9, key, message), result
 
 
 def _lhs(samples: int, seed: int = 0) -> tuple[CampaignSpec, list[dict[str, Any]]]:
