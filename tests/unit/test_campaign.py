@@ -330,6 +330,48 @@ def test_that_a_grid_whose_points_repeat_is_a_config_error_at_its_line(
     assert (result.line, result.key, result.message) == (9, key, message), result
 
 
+@pytest.mark.parametrize(("parameter", "key", "message"), [
+    ("{path: vehicle.controler.ki_pos, values: [10.0, 20.0]}", "parameters[0].path",
+     "vehicle.controler: unknown key; expected one of: controller, description, "),
+    ("{path: vehicle.controller.ki_pos.7, values: [10.0, 20.0]}", "parameters[0].path",
+     "vehicle.controller.ki_pos.7: expected an item number below 3 (in "),
+    ("{path: vehicle.mass_kg.x, values: [1.0]}", "parameters[0].path",
+     "vehicle.mass_kg.x: 'x' goes into a single value (a number) (in "),
+    ("{path: mission.segments.1.duraton_s, range: [0.5, 1.0], num: 2}", "parameters[0].path",
+     "mission.segments.1.duraton_s: unknown key; expected one of: accept_lateral_shortfall, "),
+    ("{path: scenario.disturbances.0.forse_n, values: [[0.0, 1.0, 0.0]]}",
+     "parameters[0].path", "scenario.disturbances.0.forse_n: unknown key; expected one of: "),
+    ("{path: vehicle.controller.ki_pos, values: [a, b]}", "parameters[0].values",
+     "vehicle.controller.ki_pos=a: expected a list of 3 (e.g. [1, 2, 3])"),
+    ("{path: vehicle.controller.kp_pos.1, values: [10.0, x]}", "parameters[0].values",
+     "vehicle.controller.kp_pos.1=x: expected a number, got 'x'"),
+    ("{path: run.estimator, values: [truth, kalman]}", "parameters[0].values",
+     "run.estimator=kalman: expected one of 'truth', 'ukf'; got 'kalman'"),
+])
+def test_that_a_parameter_no_point_can_fly_is_a_config_error_at_its_line(
+        tmp_path: Path, parameter: str, key: str, message: str) -> None:
+    # a path the file's schema does not have, or a value of the wrong type: every point
+    # would be an error row, so the campaign is refused at load
+    text = VALID.replace("  - path: vehicle.controller.ki_pos\n    range: [5.0, 50.0]\n"
+                         "    num: 3\n    log: true\n", f"  - {parameter}\n")
+    result = load_text(tmp_path, text)
+    assert isinstance(result, ConfigError), result
+    assert (result.line, result.key) == (9, key), result
+    assert result.message.startswith(message), result
+
+
+def test_that_a_point_outside_a_fields_range_still_loads_as_a_runs_error(
+        tmp_path: Path) -> None:
+    # the type fits, the value does not: that point's row carries the error, the others fly
+    text = VALID.replace("range: [5.0, 50.0]\n    num: 3\n    log: true",
+                         "values: [-1.0, 30.0]")
+    campaign = load_text(tmp_path, text)
+    assert not isinstance(campaign, ConfigError), campaign
+    errors = {run.params["vehicle.controller.ki_pos"]: run.config_error
+              for run in campaign.runs() if run.scenario_label is not None}
+    assert errors[30.0] is None and "ki_pos" in str(errors[-1.0]), errors
+
+
 def _lhs(samples: int, seed: int = 0) -> tuple[CampaignSpec, list[dict[str, Any]]]:
     s = spec(Parameter(path="vehicle.a", range=(0.0, 10.0)),
              Parameter(path="vehicle.b", range=(1.0, 1000.0), log=True),
