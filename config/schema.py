@@ -44,10 +44,12 @@ T = TypeVar("T")
 __all__ = [
     "ConfigError",
     "ConfigValueError",
+    "field_type",
     "line_of",
     "load_config",
     "load_config_text",
     "spec",
+    "type_error",
 ]
 
 #: largest config file read (bytes): the shipped ones are ~2 kB; this bounds parse time/memory
@@ -430,6 +432,70 @@ class _Walker:
                 first = exc.key.split(".")[0].split("[")[0]
                 line = (entries[first][1] if first in entries else node).start_mark.line + 1
             raise ConfigError(self.file, line, full, exc.message) from None
+
+
+def field_type(cls: Any, data: Any, keys: typing.Sequence[str]) -> Any:
+    """The type of the field at ``keys`` below config class ``cls`` (list items by their
+    index); ``data``, the file's parsed YAML, tells the members of a union apart. ``Any`` where
+    the type depends on a value the file does not have. A key the schema does not have raises
+    :class:`ConfigValueError` (its key: the dotted path up to that key)."""
+    tp: Any = cls
+    for n, key in enumerate(keys):
+        here = ".".join(keys[:n + 1])
+        tp = _member(tp, data)
+        if tp is Any:
+            return Any
+        origin = get_origin(tp)
+        if dataclasses.is_dataclass(tp):
+            known = {f.name for f in dataclasses.fields(tp) if f.init}
+            if key not in known:
+                raise ConfigValueError(here, "unknown key; expected one of: "
+                                       + ", ".join(sorted(known)))
+            tp = _hints(tp)[key]
+            data = data.get(key) if isinstance(data, dict) else None
+        elif origin is tuple:
+            if not isinstance(data, list):  # its default: no item to set
+                raise ConfigValueError(here, "the file has no list here to take an item of")
+            if not key.isdigit() or int(key) >= len(data):
+                raise ConfigValueError(here, f"expected an item number below {len(data)}")
+            args = get_args(tp)
+            tp = args[0] if args[-1] is Ellipsis else args[int(key)]
+            data = data[int(key)]
+        elif origin is dict:
+            tp = get_args(tp)[1]
+            data = data.get(key) if isinstance(data, dict) else None
+        else:
+            raise ConfigValueError(here, f"{key!r} goes into a single value "
+                                   f"({_describe(tp, {})})")
+    return tp
+
+
+def _member(tp: Any, data: Any) -> Any:
+    """``tp`` without its ``None``; of a union of dataclasses, the one ``data`` names."""
+    if get_origin(tp) not in (typing.Union, types.UnionType):
+        return tp
+    members = [a for a in get_args(tp) if a is not type(None)]
+    if len(members) == 1:
+        return members[0]
+    tag = _discriminator(members)
+    options = {v: m for m in members for v in get_args(_hints(m)[tag])}
+    named = data.get(tag) if isinstance(data, dict) else None
+    return options.get(named, Any) if isinstance(named, str) else Any
+
+
+def type_error(tp: Any, value: Any) -> str | None:
+    """Why ``value`` (plain YAML data) cannot be a ``tp`` whatever the field's range, as the
+    loader says it; None when it can."""
+    loader = _Loader(yaml.safe_dump(value))
+    try:
+        node = loader.get_single_node()
+    finally:
+        loader.dispose()
+    try:
+        _Walker("<value>", loader).convert(tp, node, "", {})  # no range: the type alone
+    except ConfigError as exc:
+        return exc.message
+    return None
 
 
 _HINTS: dict[Any, dict[str, Any]] = {}

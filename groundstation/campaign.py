@@ -17,9 +17,13 @@ Parameters are dotted paths into the configuration a run is built from:
 
 Each modified file is validated again, exactly as if it had been written that way: a point
 outside a field's range is a run whose row carries the config error, not a crashed campaign.
+What no point could fly is refused at load instead, at the parameter's line: a path that is no
+key of its file's schema (nor an item of its list), a value of the wrong type.
 
 Values: ``values: [...]`` (a list, any YAML values) or ``range: [lo, hi]`` (numbers) with
-``num`` points for a grid, ``log: true`` for log spacing and ``integer: true`` to round.
+``num`` points for a grid, ``log: true`` for log spacing and ``integer: true`` to round. A grid
+flies each point once: a value listed twice, or a ``num`` larger than the distinct integers
+its rounded range holds, is refused at load.
 Sampling (``sampling``): ``grid`` (the Cartesian product of every parameter's values),
 ``random`` (``samples`` points, each parameter drawn uniformly, or from its ``values``) or
 ``lhs`` (a Latin hypercube of ``samples`` points: each parameter's range cut in ``samples``
@@ -48,11 +52,24 @@ import numpy as np
 import yaml
 
 from config import find_config
-from config.schema import ConfigError, line_of, load_config, load_config_text, spec
+from config.schema import (
+    ConfigError,
+    ConfigValueError,
+    field_type,
+    line_of,
+    load_config,
+    load_config_text,
+    spec,
+    type_error,
+)
 
 CAMPAIGN_SCHEMA = "fasthex.campaign"
 NAMESPACES = ("vehicle", "mission", "preset", "scenario", "run")
-RUN_KEYS = ("tilt_deg", "duration_s", "estimator", "max_touchdown_speed_m_s")
+#: the type of each ``run.<key>`` (checked at load; a value outside its range is a run's error)
+RUN_TYPES: dict[str, Any] = {"tilt_deg": float, "duration_s": float,
+                             "estimator": Literal["truth", "ukf"],
+                             "max_touchdown_speed_m_s": float}
+RUN_KEYS = tuple(RUN_TYPES)
 #: the scenario entry that means "no scenario" (the vehicle as the controller knows it)
 NO_SCENARIO = "none"
 #: runs a campaign may expand to: beyond this a typo in ``num`` is more likely than intent
@@ -96,6 +113,12 @@ class Parameter:
                                        f"[{lo:g}, {hi:g}]")
             if self.log and lo <= 0.0:
                 raise ConfigValueError("range", "a log range needs lo > 0")
+            if self.integer and self.num is not None:  # a grid: its rounded points distinct
+                distinct = len(set(_grid_values(self)))
+                if distinct < self.num:
+                    raise ConfigValueError("num", f"num {self.num} integer values in "
+                                           f"[{lo:g}, {hi:g}] repeat: at most {distinct} "
+                                           "distinct")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -197,6 +220,11 @@ class CampaignSpec:
                 if p.range is not None and p.num is None:
                     raise ConfigValueError(f"parameters[{i}].num",
                                            "a grid over a range needs num (points)")
+                values = p.values or ()
+                for j, value in enumerate(values):
+                    if value in values[:j]:  # the same point twice: one run_id flown twice
+                        raise ConfigValueError(f"parameters[{i}].values",
+                                               f"{_short(value)} is listed twice")
             if self.samples is not None:
                 raise ConfigValueError("samples", "a grid has its size from the parameters; "
                                        "samples is for random and lhs")
@@ -572,7 +600,62 @@ def load_campaign(path: str | Path) -> Campaign:
             key = f"parameters[{i}].path"
             raise ConfigError(label, line_of(lines, key), key,
                               f"{p.path} varies a scenario, but the campaign flies none")
+        problem = _parameter_problem(campaign, p)
+        if problem is not None:
+            key = f"parameters[{i}].{problem[0]}"
+            raise ConfigError(label, line_of(lines, key), key, problem[1])
     return campaign
+
+
+def _parameter_problem(campaign: Campaign, p: Parameter) -> tuple[str, str] | None:
+    """What fails every point of ``p`` whatever its value, as (field, message): a path that is
+    no key of its file's schema (nor an item of its list), or a value of the wrong type. A
+    value outside a field's range stays the config error of its runs: the others fly."""
+    from controller.missions import MissionSpec
+    from controller.params import VehicleParams
+    from sim_backend.disturbances import DisturbancePreset
+    from sim_backend.scenario import Scenario
+
+    classes: dict[str, Any] = {"vehicle": VehicleParams, "mission": MissionSpec,
+                               "preset": DisturbancePreset, "scenario": Scenario}
+    ns, *keys = p.path.split(".")
+    targets: list[tuple[Any, Any]] = []  # (field type, the base file's value there)
+    if ns == "run":
+        targets.append((RUN_TYPES[keys[0]], None))
+    for name, (text, file) in campaign.base_texts.items():
+        if name == ns or name.startswith(f"{ns}:"):  # scenario:LABEL, each flown scenario
+            data = yaml.safe_load(text)
+            try:
+                targets.append((field_type(classes[ns], data, keys), _get_path(data, keys)))
+            except ConfigValueError as exc:
+                return "path", f"{ns}.{exc.key}: {exc.message} (in {file})"
+    if p.values is not None:
+        field_name, values = "values", list(p.values)
+    else:
+        assert p.range is not None
+        field_name, values = "range", [_as_value(v, p) for v in p.range]
+    for tp, base in targets:
+        for value in values:
+            setting = value
+            if (_is_number(value) and isinstance(base, list) and base
+                    and all(_is_number(v) for v in base)):
+                setting = [value] * len(base)  # a number on a list of numbers sets every item
+            problem = type_error(tp, setting)
+            if problem is not None:
+                return field_name, f"{p.path}={_short(value)}: {problem}"
+    return None
+
+
+def _get_path(data: Any, keys: list[str]) -> Any:
+    """The value at ``keys`` in parsed YAML (None where there is none)."""
+    for key in keys:
+        if isinstance(data, dict):
+            data = data.get(key)
+        elif isinstance(data, list) and key.isdigit() and int(key) < len(data):
+            data = data[int(key)]
+        else:
+            return None
+    return data
 
 
 def _find(kind: str, name: str, base_dir: Path, label: str, lines: dict[str, int],

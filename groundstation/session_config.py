@@ -13,6 +13,7 @@ emulated MoCap against the session's timeouts, and an emulated session's scenari
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
@@ -147,6 +148,10 @@ class SafetyConfig:
         )
 
 
+#: the placeholders ``telemetry.record`` may hold (``fly``'s record_path replaces them)
+RECORD_PLACEHOLDERS = ("session", "time")
+
+
 @dataclass(frozen=True, kw_only=True)
 class TelemetryConfig:
     record: str = spec("", doc="flight-record path, relative to the session file; {session} "
@@ -162,6 +167,13 @@ class TelemetryConfig:
                                         "$FASTHEX_MAVLINK_KEY are the other sources")
     mavlink_allow_unsigned: bool = spec(False, doc="without a key, accept flight-changing "
                                         "MAVLink commands anyway (a warning says so)")
+
+    def __post_init__(self) -> None:
+        for name in re.findall(r"\{([^{}]*)\}", self.record):
+            if name not in RECORD_PLACEHOLDERS:  # it would stay in the file name as written
+                known = " and ".join(f"{{{p}}}" for p in RECORD_PLACEHOLDERS)
+                raise ConfigValueError("record", f"unknown placeholder {{{name}}}; expected "
+                                       f"{known}")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -67,6 +67,7 @@ from urllib.parse import parse_qs, urlparse
 
 from config.schema import ConfigValueError, spec
 from drivers.dynamixel.control_table import (
+    ALL_ERROR_BITS,
     MAX_ID,
     MODEL_MX28_P1,
     MODEL_MX28_P2,
@@ -290,6 +291,24 @@ class ServoState:
     @property
     def ok(self) -> bool:
         return self.health is ServoHealth.OK
+
+    def describe(self) -> str:
+        """One line for a person: tilt and goal (deg), motion, health and errors."""
+        if math.isnan(self.t_s):
+            return f"no reading yet (health {self.health.name})"
+        return (f"tilt {math.degrees(self.tilt_rad):.2f} deg (goal "
+                f"{math.degrees(self.goal_tilt_rad):.2f} deg), "
+                f"{'moving' if self.moving else 'still'}, health {self.health.name}, errors "
+                f"{error_names(self.errors)}, read {1e3 * self.age_s:.0f} ms ago")
+
+
+def error_names(errors: ErrorBit) -> str:
+    """The status error byte for a person: ``none``, or its flags (``voltage, overload``)."""
+    names = [bit.name.lower() for bit in ErrorBit if bit and bit in errors and bit.name]
+    unknown = int(errors) & ~int(ALL_ERROR_BITS)
+    if unknown:
+        names.append(f"0x{unknown:02x}")
+    return ", ".join(names) or "none"
 
 
 @dataclass(frozen=True, slots=True)
@@ -1242,7 +1261,8 @@ class TiltServo:
         state = self.latest()
         while not predicate(state):
             if time.monotonic() > deadline:
-                raise ServoError(self.config.uri, f"timed out waiting; last state {state}")
+                raise ServoError(self.config.uri, f"timed out after {timeout_s:.1f} s; last "
+                                 f"state: {state.describe()}")
             time.sleep(1.0 / self.config.rate_hz)
             state = self.latest()
         return state

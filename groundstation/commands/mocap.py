@@ -144,12 +144,16 @@ def _list(uri: str) -> int:
 
 
 def format_status(sample: PoseSample | None, stats: MocapStats) -> str:
-    """One status line (also used by tests)."""
-    head = f"{stats.rate_hz:6.1f} Hz  lat {stats.latency_s * 1e3:5.1f} ms  " \
-        f"age {min(stats.age_s, 99.0) * 1e3:6.1f} ms  drop {stats.frames_dropped} " \
-        f"inv {stats.invalid_samples} bad {stats.malformed_packets}"
+    """One status line (also used by tests). Before the first frame there is no rate, latency
+    or age to show: only what went wrong meanwhile; unknown values print as ``--``."""
+    counts = f"drop {stats.frames_dropped} inv {stats.invalid_samples} " \
+        f"bad {stats.malformed_packets}"
     if sample is None:
-        return f"waiting for frames...  {head}"
+        wrong = stats.frames_dropped or stats.invalid_samples or stats.malformed_packets
+        return "waiting for frames..." + (f"  {counts}" if wrong else "")
+    age_s = stats.age_s if math.isinf(stats.age_s) else min(stats.age_s, 99.0)
+    head = f"{stats.rate_hz:6.1f} Hz  lat {_ms(stats.latency_s, 5)} ms  " \
+        f"age {_ms(age_s, 6)} ms  {counts}"
     if not sample.valid:
         return f"#{sample.frame_number} {sample.body_name}: {sample.status.value.upper()}  " \
             f"{head}"
@@ -160,6 +164,11 @@ def format_status(sample: PoseSample | None, stats: MocapStats) -> str:
     p = sample.pos_w_m
     return (f"#{sample.frame_number} {sample.body_name}: p [{p[0]:+7.3f} {p[1]:+7.3f} "
             f"{p[2]:+7.3f}] m  rpy [{roll:+6.1f} {pitch:+6.1f} {yaw:+7.1f}] deg  {head}")
+
+
+def _ms(value_s: float, width: int) -> str:
+    """A duration in ms; ``--`` when unknown (NaN: no latency known, inf: no valid sample)."""
+    return f"{value_s * 1e3:{width}.1f}" if math.isfinite(value_s) else "--".rjust(width)
 
 
 class WatchPacer:

@@ -66,7 +66,13 @@ def run(args: argparse.Namespace) -> int:
 
     from config import find_config
     from controller.missions import Mission
-    from drivers.dynamixel.device import ServoError, TiltServo, TiltServoConfig, read_servo
+    from drivers.dynamixel.device import (
+        ServoError,
+        TiltServo,
+        TiltServoConfig,
+        error_names,
+        read_servo,
+    )
     from drivers.errors import DriverError
     from groundstation.cli import UserError
     from groundstation.configs import load_mission, load_vehicle
@@ -122,8 +128,15 @@ def run(args: argparse.Namespace) -> int:
                       f"{ident.mode.name.lower()}")
                 if args.action == "home":
                     offset = servo.home(math.radians(args.at_deg))
-                    print(f"zero offset: {offset} steps (Present Position at tilt 0); put it "
-                          "in the session as backend.servo_zero_offset_steps")
+                    # the state below measured after the home, its tilt from the new zero
+                    seen = servo.latest().seq
+                    try:
+                        servo.wait_for(lambda s: s.seq > seen, 2.0)
+                    except ServoError as exc:
+                        raise UserError(f"servo at {uri} silent after homing: {exc}") from None
+                    was = "" if offset == zero else f"; was {zero}"
+                    print(f"zero offset: {offset} steps (Present Position at tilt 0{was}); put "
+                          "it in the session as backend.servo_zero_offset_steps")
                 else:
                     goal = math.radians(args.deg)
                     servo.set_tilt(goal)
@@ -142,7 +155,7 @@ def run(args: argparse.Namespace) -> int:
                       f"{math.degrees(state.goal_tilt_rad):.2f}), servo "
                       f"{state.servo_position_steps} steps, load {100 * state.load_fraction:.0f} "
                       f"%, {state.voltage_v:.1f} V, {state.temperature_c:.0f} C, health "
-                      f"{state.health.name}, errors {state.errors!r}")
+                      f"{state.health.name}, errors {error_names(state.errors)}")
             print("torque off (the worm drive holds the tilt)")
         finally:
             if emulator is not None:

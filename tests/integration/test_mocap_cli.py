@@ -104,7 +104,7 @@ def test_that_watch_prints_one_line_per_interval_of_the_stream(
     out = capsys.readouterr().out.strip().splitlines()
     assert rc == 0
     assert len(out) == lines, out
-    assert out[0].startswith("waiting for frames")
+    assert out[0] == "waiting for frames..."  # no rate, latency or age before a frame
     assert all("fasthex: p [ +1.000  -2.000  +1.500] m" in line for line in out[1:])
     assert pacer.waits == lines - 1
     assert vehicle.now_s() == pytest.approx(0.3)
@@ -143,3 +143,17 @@ def test_that_an_invalid_sample_is_shown_as_such_without_a_pose() -> None:
     sample = PoseSample(0, 0, 42, 1, "fasthex", TrackingStatus.INVALID, nan3, nan4, 0.004, 0.0)
     line = format_status(sample, stats)
     assert line.startswith("#42 fasthex: TRACKING_INVALID") and "p [" not in line
+
+
+def test_that_waiting_for_frames_shows_no_placeholder_as_a_measurement() -> None:
+    # before the first frame: rate 0, latency NaN, age inf are unknowns, not measurements
+    nothing = MocapStats(0, 0, 0, 0, 0, 0, 0.0, float("inf"), float("nan"))
+    assert format_status(None, nothing) == "waiting for frames..."
+    garbled = dataclasses.replace(nothing, malformed_packets=3)
+    assert format_status(None, garbled) == "waiting for frames...  drop 0 inv 0 bad 3"
+    # frames of the body arrive but none valid yet: no age, no latency known
+    stats = dataclasses.replace(nothing, frames_received=4, invalid_samples=4, rate_hz=100.0)
+    nan3, nan4 = (float("nan"),) * 3, (float("nan"),) * 4
+    sample = PoseSample(0, 0, 4, 1, "fasthex", TrackingStatus.INVALID, nan3, nan4, 0.0, 0.0)
+    line = format_status(sample, stats)
+    assert "lat    -- ms  age     -- ms" in line and "nan" not in line and "99000" not in line

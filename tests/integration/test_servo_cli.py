@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 import threading
 from pathlib import Path
 
@@ -39,8 +40,8 @@ def test_that_servo_move_without_a_goal_is_a_user_error(capsys: pytest.CaptureFi
 
 # ------------------------------------------------------- read-only status, range, torque at rest
 
-def _mx28(tmp_path: Path) -> EmulatedMX28:
-    vehicle = BenchVehicle(max_tilt_rate_rad_s=math.radians(100.0))
+def _mx28(tmp_path: Path, tilt_rate_deg_s: float = 100.0) -> EmulatedMX28:
+    vehicle = BenchVehicle(max_tilt_rate_rad_s=math.radians(tilt_rate_deg_s))
     return EmulatedMX28(vehicle, lock=threading.Lock(), link_path=tmp_path / "tilt-servo",
                         drive_clock=True, zero_offset_steps=1024)
 
@@ -158,3 +159,41 @@ def test_that_a_servo_zero_that_puts_the_tilt_range_past_the_encoder_is_a_config
     assert f"{session}:11: backend.servo_zero_offset_steps:" in err
     assert "beyond the servo's multi-turn range" in err
     assert "expected a zero of at most 20708" in err
+
+
+def test_that_home_prints_the_tilt_from_the_new_zero_and_the_errors_by_name(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Fixture: the session says zero 0; the mechanism sits on its jig at Present Position 1024
+    with _mx28(tmp_path) as emu:
+        session = tmp_path / "s.yaml"
+        session.write_text(_HW_SESSION.format(servo=emu.path,
+                                              zero="  servo_zero_offset_steps: 0\n"))
+        # Test
+        code = main(["servo", "home", "--session", str(session)])
+    out = capsys.readouterr().out
+    # Assert: the new zero, the one it replaces, and the state read with the new zero (the
+    # jig is tilt 0), not the 4.50 deg of the old one; the error byte in words
+    assert code == 0
+    assert "tilt 0.00 deg (goal 0.00), servo 1024 steps" in out, out
+    assert "errors none" in out and "ErrorBit" not in out, out
+    assert ("zero offset: 1024 steps (Present Position at tilt 0; was 0); put it in the "
+            "session as backend.servo_zero_offset_steps") in out
+
+
+def test_that_a_move_that_times_out_says_the_last_state_in_degrees(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Fixture: a mechanism at 0.2 deg/s, far slower than the vehicle's 10 deg/s the command
+    # allows for (the move's deadline: 5 s + 3 deg at 10 deg/s)
+    with _mx28(tmp_path, tilt_rate_deg_s=0.2) as emu:
+        uri = f"serial://{emu.path}?baud=1000000&id=1"
+        # Test
+        code = main(["servo", "move", "3", "--uri", uri, "--zero-steps", "1024"])
+    err = capsys.readouterr().err
+    # Assert: one readable line: the tilt short of the goal, in degrees, moving, no errors
+    assert code == 2 and err.count("\n") == 1, err
+    assert "ServoState(" not in err and "ErrorBit" not in err, err
+    match = re.search(r"tilt not reached: .*: timed out after 5\.3 s; last state: tilt "
+                      r"(\d+\.\d\d) deg \(goal 3\.00 deg\), moving, health OK, errors none, "
+                      r"read \d+ ms ago$", err.strip())
+    assert match is not None, err
+    assert 0.5 < float(match.group(1)) < 2.0

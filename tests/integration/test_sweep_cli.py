@@ -363,6 +363,20 @@ def test_that_a_campaign_value_out_of_range_names_its_line(
                    "<= 3600, got -1\n")
 
 
+@pytest.mark.parametrize("dry_run", [False, True])
+def test_that_a_typo_in_a_parameter_path_is_refused_at_load_and_nothing_flies(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], dry_run: bool) -> None:
+    path = write_campaign(tmp_path)
+    path.write_text(CAMPAIGN.replace("vehicle.controller.ki_pos", "vehicle.controler.ki_pos"))
+    out = tmp_path / "t.parquet"
+    assert main(["sweep", str(path), "--out", str(out), *(["--dry-run"] if dry_run else [])]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.startswith(f"fasthex: config error: {path}:8: parameters[0].path: "
+                                   "vehicle.controler: unknown key; expected one of: "), captured
+    assert captured.err.count("\n") == 1 and captured.out == ""
+    assert not out.exists() and not Path(f"{out}.parts").exists()
+
+
 @pytest.mark.parametrize(("option", "value", "error"), [
     ("--workers", "0", "--workers must be at least 1, got 0"),
     ("--workers", "-3", "--workers must be at least 1, got -3"),

@@ -303,15 +303,75 @@ def test_that_a_log_range_is_geometric_and_rounded_to_12_digits() -> None:
     assert third[1]["vehicle.a"] == float(f"{math.sqrt(2.0):.12g}")
 
 
-def test_that_integer_rounds_to_ints_and_may_repeat() -> None:
-    points = sample_points(spec(Parameter(path="vehicle.a", range=(0.0, 3.0), num=5,
+def test_that_integer_rounds_to_ints() -> None:
+    points = sample_points(spec(Parameter(path="vehicle.a", range=(0.0, 6.0), num=5,
                                           integer=True)))
     values = [p["vehicle.a"] for p in points]
-    assert values == [0, 1, 2, 2, 3]  # 0, 0.75, 1.5, 2.25, 3 rounded half to even
+    assert values == [0, 2, 3, 4, 6]  # 0, 1.5, 3, 4.5, 6 rounded half to even
     assert all(type(v) is int for v in values)
     drawn = sample_points(spec(Parameter(path="vehicle.a", range=(1.0, 100.0), integer=True,
                                          log=True), sampling="random", samples=50))
     assert all(type(p["vehicle.a"]) is int and 1 <= p["vehicle.a"] <= 100 for p in drawn)
+
+
+@pytest.mark.parametrize(("parameter", "key", "message"), [
+    ("{path: vehicle.controller.ki_pos, range: [10.0, 11.0], num: 5, integer: true}",
+     "parameters[0].num", "num 5 integer values in [10, 11] repeat: at most 2 distinct"),
+    ("{path: vehicle.controller.ki_pos, range: [0.6, 2.4], num: 3, integer: true}",
+     "parameters[0].num", "num 3 integer values in [0.6, 2.4] repeat: at most 2 distinct"),
+    ("{path: vehicle.controller.ki_pos, values: [10.0, 20.0, 10]}",
+     "parameters[0].values", "10 is listed twice"),
+])
+def test_that_a_grid_whose_points_repeat_is_a_config_error_at_its_line(
+        tmp_path: Path, parameter: str, key: str, message: str) -> None:
+    # the same point twice is the same run_id flown twice, counted twice by the sweep
+    text = VALID.replace("  - path: vehicle.controller.ki_pos\n    range: [5.0, 50.0]\n"
+                         "    num: 3\n    log: true\n", f"  - {parameter}\n")
+    result = load_text(tmp_path, text)
+    assert isinstance(result, ConfigError), result
+    assert (result.line, result.key, result.message) == (9, key, message), result
+
+
+@pytest.mark.parametrize(("parameter", "key", "message"), [
+    ("{path: vehicle.controler.ki_pos, values: [10.0, 20.0]}", "parameters[0].path",
+     "vehicle.controler: unknown key; expected one of: controller, description, "),
+    ("{path: vehicle.controller.ki_pos.7, values: [10.0, 20.0]}", "parameters[0].path",
+     "vehicle.controller.ki_pos.7: expected an item number below 3 (in "),
+    ("{path: vehicle.mass_kg.x, values: [1.0]}", "parameters[0].path",
+     "vehicle.mass_kg.x: 'x' goes into a single value (a number) (in "),
+    ("{path: mission.segments.1.duraton_s, range: [0.5, 1.0], num: 2}", "parameters[0].path",
+     "mission.segments.1.duraton_s: unknown key; expected one of: accept_lateral_shortfall, "),
+    ("{path: scenario.disturbances.0.forse_n, values: [[0.0, 1.0, 0.0]]}",
+     "parameters[0].path", "scenario.disturbances.0.forse_n: unknown key; expected one of: "),
+    ("{path: vehicle.controller.ki_pos, values: [a, b]}", "parameters[0].values",
+     "vehicle.controller.ki_pos=a: expected a list of 3 (e.g. [1, 2, 3])"),
+    ("{path: vehicle.controller.kp_pos.1, values: [10.0, x]}", "parameters[0].values",
+     "vehicle.controller.kp_pos.1=x: expected a number, got 'x'"),
+    ("{path: run.estimator, values: [truth, kalman]}", "parameters[0].values",
+     "run.estimator=kalman: expected one of 'truth', 'ukf'; got 'kalman'"),
+])
+def test_that_a_parameter_no_point_can_fly_is_a_config_error_at_its_line(
+        tmp_path: Path, parameter: str, key: str, message: str) -> None:
+    # a path the file's schema does not have, or a value of the wrong type: every point
+    # would be an error row, so the campaign is refused at load
+    text = VALID.replace("  - path: vehicle.controller.ki_pos\n    range: [5.0, 50.0]\n"
+                         "    num: 3\n    log: true\n", f"  - {parameter}\n")
+    result = load_text(tmp_path, text)
+    assert isinstance(result, ConfigError), result
+    assert (result.line, result.key) == (9, key), result
+    assert result.message.startswith(message), result
+
+
+def test_that_a_point_outside_a_fields_range_still_loads_as_a_runs_error(
+        tmp_path: Path) -> None:
+    # the type fits, the value does not: that point's row carries the error, the others fly
+    text = VALID.replace("range: [5.0, 50.0]\n    num: 3\n    log: true",
+                         "values: [-1.0, 30.0]")
+    campaign = load_text(tmp_path, text)
+    assert not isinstance(campaign, ConfigError), campaign
+    errors = {run.params["vehicle.controller.ki_pos"]: run.config_error
+              for run in campaign.runs() if run.scenario_label is not None}
+    assert errors[30.0] is None and "ki_pos" in str(errors[-1.0]), errors
 
 
 def _lhs(samples: int, seed: int = 0) -> tuple[CampaignSpec, list[dict[str, Any]]]:

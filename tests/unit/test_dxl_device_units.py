@@ -12,11 +12,13 @@ from hypothesis import strategies as st
 from process_targets import hammer_mailbox
 
 from config.schema import ConfigError, load_config_text
+from drivers.dynamixel.control_table import ErrorBit
 from drivers.dynamixel.device import (
     _S,
     TiltServo,
     TiltServoConfig,
     _Mailbox,
+    error_names,
     parse_servo_uri,
     rate_limited_goal,
     steps_to_tilt,
@@ -117,3 +119,9 @@ def test_that_the_mailbox_never_hands_out_a_half_written_state() -> None:
     finally:
         writer.join(30.0)
     assert seen > 0 and writer.exitcode == 0
+
+
+def test_that_the_error_byte_reads_as_words() -> None:
+    assert error_names(ErrorBit.NONE) == "none"
+    assert error_names(ErrorBit.OVERLOAD | ErrorBit.VOLTAGE) == "voltage, overload"
+    assert error_names(ErrorBit(0x84)) == "overheating, 0x80"  # a bit the MX-28 never sets

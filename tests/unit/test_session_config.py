@@ -50,6 +50,8 @@ def test_that_every_shipped_session_loads() -> None:
      "mocap_clock_ppm, scenario, seed"),
     ("  seed: 1\n", "  seed: 1\n  mocap: vicon\n", "mocap",
      "backend.mocap: expected one of 'natnet', 'qtm'; got 'vicon'"),
+    ("telemetry:\n", 'telemetry:\n  record: "{sesion}-{time}.fhr"\n', "record:",
+     "telemetry.record: unknown placeholder {sesion}; expected {session} and {time}"),
 ])
 def test_that_a_malformed_session_gives_its_precise_message(
         tmp_path: Path, old: str, new: str, fragment: str, message: str) -> None:
@@ -181,6 +183,13 @@ def test_that_an_imu_timeout_below_two_periods_is_refused(tmp_path: Path) -> Non
         load_session(path)
     assert str(info.value) == (f"{path}:{_line_of(text, 'imu_timeout_s')}: safety.imu_timeout_s: "
                                "expected >= two IMU periods at 500 Hz (0.004 s), got 0.003")
+
+
+def test_that_the_record_placeholders_are_accepted(tmp_path: Path) -> None:
+    text = GOOD.replace("telemetry:\n", 'telemetry:\n  record: "out/{session}-{time}.fhr"\n')
+    path = tmp_path / "session.yaml"
+    path.write_text(text)
+    assert load_session(path).telemetry.record == "out/{session}-{time}.fhr"
 
 
 def test_that_a_mavlink_key_file_is_relative_to_the_session_and_must_exist(
