@@ -180,7 +180,11 @@ class FlightStateMachine:
     def limit(self, t_s: float, reason: str, *, cut: bool = False) -> None:
         """A limit of the session itself (not an operator's request, not a health input): a
         fault, then land where the vehicle is (``cut``: stop the motors). On the ground at idle
-        (ARMED) it disarms; with the motors off it does nothing."""
+        (ARMED) it disarms, in PREFLIGHT it ends the session; after a flight, nothing."""
+        if self.state is FlightState.PREFLIGHT:
+            self._fault(t_s, reason)
+            self._go(t_s, FlightState.DISARMED, f"{reason}: session ended before arming")
+            return
         if self.state not in MOTORS_ON:
             return
         self._fault(t_s, reason)

@@ -200,6 +200,10 @@ class FlightLoop:
         #: called once when the mission clock starts (take-off): an emulated vehicle's scenario
         #: is timed from there (sim_backend.scenario)
         self.on_mission_start: Callable[[], None] | None = None
+        #: polled every LINK_CHECK_TICKS: None while the flight record is being written, else
+        #: why it is not (the telemetry process died): the vehicle then lands (before arming:
+        #: the session ends)
+        self.record_lost: Callable[[], str | None] | None = None
         self.period_ns = round(1e9 / options.imu_rate_hz)
         self.timer = LoopTimer(1.0 / options.imu_rate_hz)
         #: operator requests from other threads (signal handler, MAVLink): deque is atomic
@@ -245,6 +249,8 @@ class FlightLoop:
         ground_since_s: float | None = None
         aloft_since_s: float | None = None   # the mission over, the estimate off the ground
         time_limit_told = 0  # 1: the session time limit landed the vehicle, 2: it cut
+        record_lost_why: str | None = None  # the flight record lost: why (acted on once)
+        record_lost_told = False
         tick: ControlTick | None = None
         force_cmd_b: tuple[float, float, float] = (0.0, 0.0, 0.0)
         est_state = VehicleState((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0),
@@ -379,6 +385,8 @@ class FlightLoop:
             if n % LINK_CHECK_TICKS == LINK_CHECK_TICKS // 2:
                 self._exchange_with_operators(battery_v)
             if n % LINK_CHECK_TICKS == 0:
+                if self.record_lost is not None and record_lost_why is None:
+                    record_lost_why = self.record_lost()
                 stats = self.imu.link_stats()
                 # the newest mark at least a window old is the window's start
                 while len(rate_marks) > 1 and \
@@ -412,6 +420,10 @@ class FlightLoop:
             # the session's own time limit: land once (a stop request here would count as the
             # operator's second one on the next tick and cut), cut a landing that never ends
             # (before the update: its transition is acted on in this tick, as a request's is)
+            if record_lost_why is not None and not record_lost_told:
+                # a flight nobody records: land it (before arming: end the session)
+                record_lost_told = True
+                sm.limit(t_s, f"flight record lost: {record_lost_why}")
             if t_s > opts.max_flight_s and time_limit_told < 1:
                 time_limit_told = 1
                 sm.limit(t_s, f"session time limit ({opts.max_flight_s:g} s)")

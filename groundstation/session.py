@@ -33,7 +33,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, NoReturn, TypeVar
 
 import numpy as np
 
@@ -195,7 +195,7 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
                     events: Any, events_path: str, notices: Any, stop: Any,
                     dashboard_mode: str, rrd_path: str, params: VehicleParams,
                     mavlink: GcsOptions | None, status: Any, commands: Any, imported: Any,
-                    go: Any, session_pid: int) -> None:
+                    go: Any, session_pid: int, opened: Any, failure: Any) -> None:
     """The telemetry process: ring -> flight record (+ rerun dashboard), event queue -> events
     file. Runs at a lower priority; the loop never waits for it. It never writes to the
     terminal itself: lines for the operator (the viewer's address, the MAVLink link's notices)
@@ -205,7 +205,13 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
     waits for ``go`` (the devices are open) before it makes anything: a session that ends in
     its start-up leaves no record. ``stop`` or the session's death meanwhile ends it: the death
     of ``session_pid`` (its parent), even before this process could look (it is then the
-    child of another process already, and its own parent's pid tells nothing)."""
+    child of another process already, and its own parent's pid tells nothing).
+
+    Once the record is open it sets ``opened``. A record it cannot write (at its opening or
+    later: a full disk) ends it with exit code 2 and one line on ``failure`` for the session,
+    which then lands the vehicle (``FlightLoop.record_lost``); a dashboard that cannot start is an
+    event and a notice, and the flight goes on with its record (the MAVLink link handles its
+    own failure to open the same way, in ``start_gcs``)."""
     with contextlib.suppress(OSError):
         os.nice(10)
     # the session ends us (stop event or its death), not the terminal; nor do Ctrl-\ and
@@ -221,24 +227,57 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
     while not go.wait(0.1):
         if stop.is_set() or os.getppid() != session_pid:
             return
-    ring = TelemetryRing(RECORD_DTYPE, name=ring_name)
-    writer = RecordWriter(record_path, metadata, keep_in_memory=False)
-    pending_events: list[str] = []
-    dash = None
-    if dashboard_mode != "off":
-        from groundstation.dashboard import Dashboard
-
-        dash = Dashboard(dashboard_mode, rrd_path, metadata=metadata, params=params)
-        if dash.viewer_url and notices is not None:
-            notices.put(f"dashboard: web viewer at {dash.viewer_url}")
+    def fail(why: str) -> NoReturn:
+        with contextlib.suppress(Exception):
+            failure.put(why, timeout=1.0)
+        raise SystemExit(2)
 
     def notice(line: str) -> None:
         if notices is not None:
             with contextlib.suppress(queue.Full):
                 notices.put_nowait(line)
 
+    ring = TelemetryRing(RECORD_DTYPE, name=ring_name)
+    try:
+        writer = RecordWriter(record_path, metadata, keep_in_memory=False)
+    except OSError as exc:
+        fail(f"cannot write the flight record {record_path}: {exc.strerror or exc}")
+    opened.set()
+    dash = None
+    if dashboard_mode != "off":
+        from groundstation.dashboard import Dashboard
+
+        try:
+            dash = Dashboard(dashboard_mode, rrd_path, metadata=metadata, params=params)
+        except Exception as exc:  # the record matters more: fly on without the dashboard
+            line = f"dashboard ({dashboard_mode}): WARNING not started: {exc}"
+            with contextlib.suppress(OSError), open(events_path, "a", encoding="utf-8") as ev:
+                ev.write(line + "\n")
+            notice(line)
+        if dash is not None and dash.viewer_url:
+            notice(f"dashboard: web viewer at {dash.viewer_url}")
+
     gcs = None if mavlink is None else start_gcs(mavlink, params, status, commands,
                                                  events_path, notice)
+    try:
+        pending = _telemetry_run(ring, writer, events, events_path, stop, session_pid, dash,
+                                 gcs)
+    except OSError as exc:  # the record (or the events file) could not be written on
+        fail(f"the flight record {record_path} could not be written on: "
+             f"{exc.strerror or exc}")
+    if dash is not None:
+        dash.close()
+    if gcs is not None:  # the final state announced, then the link's counters written
+        gcs.close(pending)
+    ring.close()
+
+
+def _telemetry_run(ring: TelemetryRing, writer: RecordWriter, events: Any, events_path: str,
+                   stop: Any, session_pid: int, dash: Any, gcs: Any) -> list[str]:
+    """The telemetry process's loop: ring -> record (+ dashboard, MAVLink), events -> file,
+    every 50 ms until the session stops or dies; the record closed at the end. Returns the
+    events not yet published to the MAVLink link."""
+    pending_events: list[str] = []
     with open(events_path, "a", encoding="utf-8") as ev:
         while True:
             # the session ended, or died (kill -9): either way, write out what the ring holds
@@ -271,11 +310,31 @@ def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
                 break
             time.sleep(0.05)
     writer.close()
-    if dash is not None:
-        dash.close()
-    if gcs is not None:  # the final state announced, then the link's counters written
-        gcs.close(pending_events)
-    ring.close()
+    return pending_events
+
+
+def _telemetry_failure(tel: Any, failure: Any, *, wait: bool = True) -> str:
+    """Why the telemetry process ended: its own line, or its exit code (a crash, a kill).
+    ``wait=False`` (the flight loop's thread): nothing that blocks."""
+    if wait:
+        tel.join(timeout=1.0)
+    try:
+        return str(failure.get(timeout=0.5) if wait else failure.get_nowait())
+    except queue.Empty:
+        return f"the telemetry process exited (exit code {tel.exitcode})"
+
+
+def _salvage_events(events: Any, events_path: Path) -> None:
+    """The events the dead telemetry process left in its queue, appended to the events file
+    (the session's own process can still write it: a record that cannot be written need not
+    mean an events file that cannot)."""
+    lines: list[str] = []
+    with contextlib.suppress(Exception):
+        while True:
+            lines.append(events.get(timeout=0.05))
+    if lines:
+        with contextlib.suppress(OSError), events_path.open("a", encoding="utf-8") as ev:
+            ev.write("\n".join(lines) + "\n")
 
 
 class FlightSession:
@@ -349,7 +408,8 @@ class FlightSession:
         with stop_signals_blocked():
             resource_tracker.ensure_running()
         stop = ctx.Event()
-        tel_imported, tel_go = ctx.Event(), ctx.Event()
+        tel_imported, tel_go, tel_opened = ctx.Event(), ctx.Event(), ctx.Event()
+        tel_failure: Any = ctx.Queue(maxsize=4)
         events: Any = ctx.Queue(maxsize=10_000)
         status: Any = ctx.Array("d", STATUS_SIZE, lock=False)
         commands: Any = ctx.Queue(maxsize=100)
@@ -406,7 +466,7 @@ class FlightSession:
                                     dashboard_mode,
                                     str(self.record_path.with_suffix(".rrd")), self.params,
                                     self.mavlink, status, commands, tel_imported, tel_go,
-                                    os.getpid()))
+                                    os.getpid(), tel_opened, tel_failure))
             with stop_signals_blocked():  # it ignores them once its interpreter is up
                 tel.start()
             if isinstance(backend, EmulatedBackend):
@@ -494,6 +554,7 @@ class FlightSession:
 
             self.events_path.write_text("")
             tel_go.set()  # the record and the events file from now on
+            self._await_record(tel, tel_opened, tel_failure)
             if forwarder is not None:
                 forwarder.start()
             row_sink = ring.push_flat
@@ -513,6 +574,14 @@ class FlightSession:
                     and backend.scenario:
                 loop.on_mission_start = self.emulator.start_scenario
             loop.requests = self.requests  # stop requests that came during start-up stand
+            telemetry = tel
+
+            def record_lost() -> str | None:  # every LINK_CHECK_TICKS: one waitpid
+                if telemetry.is_alive():
+                    return None
+                return _telemetry_failure(telemetry, tel_failure, wait=False)
+
+            loop.record_lost = record_lost
             loop_box.append(loop)
             self.loop = loop
             if rt_settings:
@@ -565,6 +634,8 @@ class FlightSession:
                 tel.join(timeout=30.0)
                 if tel.is_alive():
                     tel.kill()
+                if tel.exitcode and tel_go.is_set():  # it died: its queued events, at least
+                    _salvage_events(events, self.events_path)
             if ring is not None:
                 ring.close()
             if forwarder is not None:
@@ -606,6 +677,18 @@ class FlightSession:
             if time.monotonic() > deadline:
                 raise SessionError("the telemetry process did not start within "
                                    f"{TELEMETRY_START_S:.0f} s")
+
+    def _await_record(self, tel: Any, opened: Any, failure: Any) -> None:
+        """Wait until the telemetry process has opened the flight record (a file open: ms):
+        a record it cannot write ends the session here, before anything is armed."""
+        deadline = time.monotonic() + TELEMETRY_START_S
+        while not opened.wait(0.02):
+            self._check_interrupted("opening the flight record")
+            if not tel.is_alive():
+                raise SessionError(_telemetry_failure(tel, failure))
+            if time.monotonic() > deadline:
+                raise SessionError("the telemetry process did not open the flight record "
+                                   f"within {TELEMETRY_START_S:.0f} s")
 
     def _check_interrupted(self, stage: str) -> None:
         """A stop signal during start-up ends the session there: nothing is armed yet."""

@@ -174,6 +174,14 @@ class TelemetryConfig:
                 known = " and ".join(f"{{{p}}}" for p in RECORD_PLACEHOLDERS)
                 raise ConfigValueError("record", f"unknown placeholder {{{name}}}; expected "
                                        f"{known}")
+        if self.mavlink:  # the link's own parser: a bad URI must not wait for the flight
+            from drivers.errors import TransportUriError
+            from drivers.mavlink.link import parse_mavlink_uri
+
+            try:
+                parse_mavlink_uri(self.mavlink)
+            except TransportUriError as exc:
+                raise ConfigValueError("mavlink", f"{self.mavlink}: {exc.message}") from None
 
 
 @dataclass(frozen=True, kw_only=True)

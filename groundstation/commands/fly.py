@@ -113,8 +113,19 @@ def run(args: argparse.Namespace) -> int:
     mission = Mission(load_mission(resolve_reference(path, cfg.mission)))
     for line in preflight_warnings(mission, params):  # before anything is armed
         print(line, file=sys.stderr)
+    if args.mavlink:  # as telemetry.mavlink is checked at load: before anything opens
+        from drivers.errors import TransportUriError
+        from drivers.mavlink.link import parse_mavlink_uri
+
+        try:
+            parse_mavlink_uri(args.mavlink)
+        except TransportUriError as exc:
+            raise UserError(f"--mavlink {exc}") from None
     record = record_path(args.record, cfg.telemetry.record, path, cfg.name)
     make_record_folder(record)
+    if record.is_dir():  # the telemetry process could not open it, mid-start-up
+        raise UserError(f"the flight record {record} is a folder; expected a file path "
+                        "(--record or telemetry.record)")
     show = not args.quiet and not args.json
     console = Console(sys.stderr, status=lambda: session.loop.status if session.loop else "")
     session = FlightSession(cfg, params, mission, record_path=record,

@@ -361,6 +361,10 @@ def test_that_a_session_limit_lands_here_disarms_on_the_ground_or_cuts() -> None
     armed.limit(0.5, "session time limit (0.5 s)")
     assert armed.state is FlightState.DISARMED
     assert armed.transitions[-1].reason == "session time limit (0.5 s): disarmed before take-off"
-    idle = FlightStateMachine(LIMITS)
-    idle.limit(0.5, "session time limit (0.5 s)")  # motors off: nothing to do
-    assert (idle.state, idle.transitions, idle.faults) == (FlightState.PREFLIGHT, [], [])
+    preflight = FlightStateMachine(LIMITS)
+    preflight.limit(0.5, "flight record lost")
+    assert preflight.state is FlightState.DISARMED and preflight.finished
+    assert preflight.transitions[-1].reason == "flight record lost: session ended before arming"
+    assert preflight.faults == ["0.500 s: flight record lost"]
+    preflight.limit(0.6, "again")  # after the session: nothing
+    assert len(preflight.transitions) == 1 and len(preflight.faults) == 1
