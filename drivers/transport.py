@@ -564,6 +564,30 @@ TRANSPORTS: Mapping[str, TransportFactory] = MappingProxyType({
 """The default scheme -> factory registry (read-only)."""
 
 
+def check_transport_uri(uri: str) -> None:
+    """What :func:`open_transport` checks of ``uri`` before it opens anything (scheme, options,
+    their integer values), for a config file validated before any device opens. Raises
+    :class:`TransportUriError`."""
+    parsed = parse_uri(uri)
+    if parsed.scheme not in TRANSPORTS:
+        known = ", ".join(f"{s}://" for s in sorted(TRANSPORTS) if s != "path")
+        raise TransportUriError(uri, f"unknown scheme {parsed.scheme!r}; expected one of {known}")
+    if parsed.scheme == "serial":
+        parsed.check_options(("baud", "low_latency"), _SERIAL_FORM)
+        if not parsed.target:
+            raise TransportUriError(uri, f"missing device; expected {_SERIAL_FORM}")
+        parsed.int_option("baud", DEFAULT_BAUD, _SERIAL_FORM)
+        parsed.int_option("low_latency", 1, _SERIAL_FORM)
+    elif parsed.scheme in ("pty", "loop"):
+        parsed.check_options((), f"{parsed.scheme}://" + ("<path>" if parsed.scheme == "pty"
+                                                          else ""))
+    elif parsed.scheme == "spy":
+        parsed.check_options(("log",), "spy://<inner-uri>?log=<file>")
+        if not parsed.target:
+            raise TransportUriError(uri, "missing inner URI; expected spy://<inner-uri>")
+        check_transport_uri(parsed.target)
+
+
 def open_transport(uri: str, registry: Mapping[str, TransportFactory] = TRANSPORTS
                    ) -> Transport:
     """Open the transport named by ``uri`` (forms in the module docstring).

@@ -14,6 +14,7 @@ emulated MoCap against the session's timeouts, and an emulated session's scenari
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
@@ -56,6 +57,23 @@ class HardwareBackend:
             if "://" not in getattr(self, key):
                 raise ConfigValueError(key, "expected a device URI (SCHEME://...), got "
                                        f"{getattr(self, key)!r}")
+        # each driver's own URI parser, which opens nothing: a malformed URI is an error at
+        # its line before any device opens, not a traceback halfway through start-up
+        from drivers.dynamixel.device import parse_servo_uri
+        from drivers.errors import TransportUriError
+        from drivers.mocap.uri import MocapUriError, parse_uri
+        from drivers.transport import check_transport_uri
+
+        checks: tuple[tuple[str, Callable[[str], object]], ...] = (
+            ("flight_ctrl_uri", check_transport_uri), ("servo_uri", parse_servo_uri),
+            ("mocap_uri", parse_uri))
+        for key, check in checks:
+            try:
+                check(getattr(self, key))
+            except TransportUriError as exc:
+                raise ConfigValueError(key, str(exc)) from None
+            except MocapUriError as exc:
+                raise ConfigValueError(key, str(exc)) from None
 
 
 @dataclass(frozen=True, kw_only=True)

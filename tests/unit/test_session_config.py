@@ -239,3 +239,38 @@ def test_that_the_cli_seed_range_ends_where_the_session_files_range_ends(
     # Test / Assert: the CLI takes the same bounds
     for seed in (0, 2**32 - 1):
         assert build_parser().parse_args([command, "--seed", str(seed)]).seed == seed
+
+
+@pytest.mark.parametrize(("key", "uri", "message"), [
+    ("mocap_uri", "natnet://192.0.2.10?local=notanip&body=fasthex",
+     "natnet://192.0.2.10?local=notanip&body=fasthex: local_ip: must be an IPv4 address"),
+    ("mocap_uri", "bogus://x", "bogus://x: unknown scheme 'bogus'; expected natnet://"),
+    ("flight_ctrl_uri", "serial:///dev/ttyUSB0?baud=fast",
+     "serial:///dev/ttyUSB0?baud=fast: option baud='fast' is not an integer; expected "
+     "serial://<device>?baud=<int>&low_latency=<0|1>"),
+    ("flight_ctrl_uri", "serial:///dev/ttyUSB0?speed=500000",
+     "serial:///dev/ttyUSB0?speed=500000: unknown option 'speed'; expected the form serial://"),
+    ("flight_ctrl_uri", "ser:///dev/ttyUSB0",
+     "ser:///dev/ttyUSB0: unknown scheme 'ser'; expected one of loop://, pty://, serial://, "
+     "spy://"),
+    ("flight_ctrl_uri", "spy://serial:///dev/ttyUSB0?baud=x?log=fc.log",
+     "serial:///dev/ttyUSB0?baud=x: option baud='x' is not an integer"),
+    ("servo_uri", "serial:///dev/ttyUSB1?baud=1000000&id=300",
+     "serial:///dev/ttyUSB1?baud=1000000&id=300: id 300 outside 0..253"),
+    ("servo_uri", "serial:///dev/ttyUSB1?baud=123",
+     "serial:///dev/ttyUSB1?baud=123: baud 123 cannot be opened by dynamixel-sdk"),
+])
+def test_that_a_malformed_device_uri_is_refused_at_its_line_by_its_drivers_parser(
+        tmp_path: Path, key: str, uri: str, message: str) -> None:
+    # Fixture: the hardware template (its vehicle and mission are shipped names)
+    template = find_config("sessions", "hardware-template")
+    text = "\n".join(f'  {key}: "{uri}"' if line.strip().startswith(f"{key}:") else line
+                     for line in template.read_text().splitlines()) + "\n"
+    path = tmp_path / "bench.yaml"
+    path.write_text(text)
+    # Test
+    with pytest.raises(ConfigError) as info:
+        load_session(path)
+    # Assert: before any device is opened (load_session opens none), at the key's line
+    assert str(info.value).startswith(
+        f"{path}:{_line_of(text, key + ':')}: backend.{key}: {message}")
