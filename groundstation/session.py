@@ -401,11 +401,13 @@ class FlightSession:
         ring: TelemetryRing | None = None
         ctx = mp.get_context("spawn")
         # multiprocessing's resource tracker (it unlinks the shared memory and semaphores below)
-        # is a child of ours too: started with the stop signals blocked it keeps them blocked,
-        # so a SIGHUP to the group cannot kill it half-way through the session
+        # is a child of ours too, in the terminal's foreground group: started with the stop
+        # signals blocked it keeps them blocked (it unblocks only SIGINT and SIGTERM, which it
+        # ignores), so that neither a SIGHUP nor a flight's Ctrl-\ kills it half-way through
+        # the session (relaunched, it flooded the console with KeyErrors), nor Ctrl-Z stops it
         from multiprocessing import resource_tracker
 
-        with stop_signals_blocked():
+        with stop_signals_blocked(flight=True):
             resource_tracker.ensure_running()
         stop = ctx.Event()
         tel_imported, tel_go, tel_opened = ctx.Event(), ctx.Event(), ctx.Event()

@@ -71,13 +71,17 @@ def ignore_stop_signals(*, flight: bool = False) -> None:
 
 
 @contextlib.contextmanager
-def stop_signals_blocked() -> Iterator[None]:
+def stop_signals_blocked(*, flight: bool = False) -> Iterator[None]:
     """Start child processes inside this block: they inherit a mask that holds the stop
     signals back until they ignore them (a spawned interpreter takes a second or more to get
     there, and a Ctrl-C in that window would kill it). The parent only defers them: a signal
     that arrives meanwhile is delivered to its handler when the block ends. The block ends
-    with the mask it found, so that a block inside another one leaves them held."""
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+    with the mask it found, so that a block inside another one leaves them held.
+
+    ``flight``: Ctrl-\\ and job control too, for a child that never unblocks them (a
+    flight's Ctrl-\\ must not kill it, nor Ctrl-Z stop it)."""
+    held = (FLIGHT_STOP_SIGNALS + JOB_CONTROL_SIGNALS) if flight else STOP_SIGNALS
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, held)
     try:
         yield
     finally:
