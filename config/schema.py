@@ -550,7 +550,24 @@ def _range_text(meta: dict[str, Any]) -> str:
 
 
 def _describe(tp: Any, meta: Any) -> str:
+    """What a value of type ``tp`` looks like in a file, as the loader's other messages say
+    it (never a Python type name: the reader of the message writes YAML)."""
     origin = get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        members = [a for a in get_args(tp) if a is not type(None)]
+        if len(members) > 1 and all(dataclasses.is_dataclass(m) for m in members):
+            tag = _discriminator(members)  # e.g. "a mapping with kind: hold or kind: go_to"
+            return "a mapping with " + " or ".join(
+                f"{tag}: {v}" for m in members for v in get_args(_hints(m)[tag]))
+        return " or ".join(_describe(m, meta) for m in members)
+    if origin is Literal:
+        return "one of " + ", ".join(map(repr, get_args(tp)))
+    if tp is bool:
+        return "true or false"
+    if tp is str:
+        return "a text value"
+    if origin is dict:
+        return "a mapping"
     if tp is float:
         return "a number" + _range_text(dict(meta))
     if tp is int:

@@ -249,9 +249,25 @@ class VehicleParams:
             )
         self._check_rotors()
         self._check_loops()
-        max_lift_n = 6.0 * self.rotors.max_thrust_n * math.cos(self.tilt.max_tilt_rad)
+        upright_lift_n = 6.0 * self.rotors.max_thrust_n
+        max_lift_n = upright_lift_n * math.cos(self.tilt.max_tilt_rad)
         weight_n = self.mass_kg * self.gravity_m_s2
         if max_lift_n < 1.2 * weight_n:
+            # the key to blame is the one that needs the smaller edit: the mass (down to what
+            # the rotors lift at this tilt) or the tilt (down to where they lift this weight;
+            # none when they cannot lift it upright either). At 90 deg no thrust is vertical:
+            # the tilt, not the mass, makes the file impossible.
+            tilt_deg = self.tilt.max_tilt_deg
+            fits_deg = (math.degrees(math.acos(1.2 * weight_n / upright_lift_n))
+                        if upright_lift_n >= 1.2 * weight_n else None)
+            if fits_deg is not None and 1.0 - fits_deg / tilt_deg < 1.0 - max_lift_n / (
+                    1.2 * weight_n):
+                raise ConfigValueError(
+                    "tilt.max_tilt_deg",
+                    f"at {tilt_deg:g} deg the rotors lift at most {max_lift_n:.1f} N, but the "
+                    f"weight {weight_n:.1f} N needs >= 20 % thrust margin; expected at most "
+                    f"{math.floor(fits_deg * 10) / 10:.1f} deg",
+                )
             raise ConfigValueError(
                 "mass_kg",
                 f"weight {weight_n:.1f} N needs >= 20 % thrust margin, but the rotors lift at "

@@ -1,7 +1,8 @@
 """The ``fasthex`` command line: one subcommand per module of :mod:`groundstation.commands`.
 
 Errors a user can fix (a bad config file, a port that cannot be opened) are printed as one line
-without a traceback and give exit code 2; Ctrl-C gives 130.
+without a traceback and give exit code 2; Ctrl-C gives 130 (``fly`` takes its stop signals
+itself from its first instruction on: a stopped session exits 1).
 """
 
 from __future__ import annotations

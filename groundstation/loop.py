@@ -536,7 +536,8 @@ class FlightLoop:
             self.timer.record(start_ns, time.perf_counter_ns(), sent_ns - imu.arrival_t_ns)
             n += 1
             if n % 50 == 0:
-                self.status = self._status_line(t_s, tick, alpha, est_state, battery_v)
+                flight_s = t_s - takeoff_t_s if takeoff_t_s is not None else math.nan
+                self.status = self._status_line(flight_s, tick, alpha, est_state, battery_v)
             if sm.finished:
                 self._stop_motors()
                 # why the flight ended: what sent it into LANDING or CUT (or the last step)
@@ -800,14 +801,16 @@ class FlightLoop:
         if not self.row_sink(row):
             self._counters["telemetry_dropped"] += 1
 
-    def _status_line(self, t_s: float, tick: ControlTick | None, alpha: float,
+    def _status_line(self, flight_s: float, tick: ControlTick | None, alpha: float,
                      est: VehicleState, battery_v: float) -> str:
-        # "--" until known: no estimate-based error before the controller runs, no battery
-        # reading before the board's first B frame
+        # "--" until known: no flight time before take-off (flight_s: since take-off, NaN
+        # before), no estimate-based error before the controller runs, no battery reading
+        # before the board's first B frame
         err = math.dist(est.pos_w_m, tick.ref.pos_w_m) * 1e3 if tick is not None else math.nan
         timing = self.timer.last_compute_s() * 1e3
         # most important first: a narrow terminal cuts the end
-        return (f"{self.sm.state.name:<9} {t_s:5.1f} s  pos. error {number(err, '4.1f', 'mm')}"
+        return (f"{self.sm.state.name:<9} {number(flight_s, '5.1f', 's'):>7}  "
+                f"pos. error {number(err, '4.1f', 'mm')}"
                 f"  tilt {math.degrees(alpha):4.1f} deg  battery {number(battery_v, '5.2f', 'V')}"
                 f"  late ticks {self.timer.deadline_misses}  tick {timing:4.2f} ms")
 

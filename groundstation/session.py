@@ -693,8 +693,9 @@ class FlightSession:
                                    f"within {TELEMETRY_START_S:.0f} s")
 
     def _check_interrupted(self, stage: str) -> None:
-        """A stop signal during start-up ends the session there: nothing is armed yet."""
-        if self.requests:
+        """A stop signal during start-up ends the session there: nothing is armed yet. (A
+        refused Ctrl-Z is no stop: the loop tells it at its first tick.)"""
+        if "stop" in self.requests:
             raise SessionInterruptedError(f"stopped while {stage}: nothing was armed")
 
 

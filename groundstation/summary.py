@@ -77,7 +77,9 @@ def metrics_table(summary: dict[str, Any]) -> list[str]:
                         for p in PHASES)
         lines.append(f"{label:<{label_w}}{unit:<{unit_w}}{cells}")
     within = summary.get("all_spin_within_limits")
-    if within is not None:
+    if within is not None and not summary.get("all_ticks"):  # no tick to be within them
+        lines.append("rotor spin limits: not scored (no measured tick)")
+    elif within is not None:
         lines.append("rotor spin limits: " + ("respected on every tick" if within else
                                               "EXCEEDED (see the spin panel of the report)"))
     return lines
@@ -98,8 +100,10 @@ def summary_text(summary: dict[str, Any], *, clock: str = "realtime",
     title = f"Flight summary: {s['session']}"
     lines = [title, "=" * len(title)]
     lines.append(f"session ended: {s['end_reason']}")
-    lines.append(f"flown:         {flight_s:.1f} s of flight ({ticks} ticks at {rate_hz:g} Hz) "
-                 f"in {wall_s:.1f} s wall{speed}")
+    lines.append(f"flown:         {flight_s:.1f} s of flight in {wall_s:.1f} s wall{speed}")
+    # the ticks are the whole session's (preflight and arming too), not the flight's
+    lines.append(f"loop:          {ticks} ticks in all ({ticks / rate_hz:.1f} s at "
+                 f"{rate_hz:g} Hz, preflight included)")
     failed = [p for p in s.get("preflight", []) if not p["pass"]]
     n_pre = len(s.get("preflight", []))
     if n_pre:

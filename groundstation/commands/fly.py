@@ -17,7 +17,10 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from groundstation.signals import StopSignals
 
 NAME = "fly"
 HELP = "fly a session (default: the paper's Experiment 1 on the emulated vehicle)"
@@ -85,6 +88,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from groundstation.signals import StopSignals
+
+    # First of all: SIGINT (Ctrl-C), SIGTERM, SIGHUP and SIGQUIT (Ctrl-\) are requests from
+    # here on (the first lands, a second cuts), so that one during the start-up (the files
+    # load, the devices open: a second or more) ends it as every stopped start-up does (one
+    # line saying nothing was armed, exit code 1), not as a KeyboardInterrupt (exit 130);
+    # Ctrl-Z is refused (a suspended ground station stops commanding the motors)
+    signals = StopSignals(flight=True).install()
+    try:
+        return _fly(args, signals)
+    finally:
+        signals.restore()
+
+
+def _fly(args: argparse.Namespace, signals: StopSignals) -> int:
     from dataclasses import replace
 
     from config import find_config
@@ -95,7 +113,6 @@ def run(args: argparse.Namespace) -> int:
     from groundstation.gcs import summary_lines as mavlink_summary_lines
     from groundstation.session import FlightSession, SessionError, SessionInterruptedError
     from groundstation.session_config import EmulatedBackend, load_session, resolve_reference
-    from groundstation.signals import StopSignals
     from groundstation.summary import json_ready, summary_text
 
     path = find_config("sessions", args.session)
@@ -134,47 +151,45 @@ def run(args: argparse.Namespace) -> int:
                             realtime_settings=args.realtime_settings,
                             dashboard=args.rerun, mavlink=args.mavlink,
                             mavlink_key_file=args.mavlink_key_file, props_off=args.props_off)
-    # SIGINT (Ctrl-C), SIGTERM, SIGHUP and SIGQUIT (Ctrl-\): the first lands, a second cuts;
-    # Ctrl-Z is refused (a suspended ground station stops commanding the motors)
-    signals = StopSignals(session.requests, flight=True).install()
+    session.requests = signals.requests  # one deque from the start-up's first instruction
     session.stop_signals = signals
     if show:
         console.start()
     try:
-        try:
-            outcome = session.run()
-        except SessionInterruptedError as exc:
-            console.stop()  # its last lines first; this one after, on a line of its own
-            print(f"fasthex: {signals.describe()}: {exc}", file=sys.stderr)
-            return 1
-        except SessionError as exc:
-            raise UserError(str(exc)) from None
-        finally:
-            if signals.hangup:  # the terminal is gone: print nothing more to it
-                console.broken = True
-            console.stop()
-        summary = flight_summary(outcome, params, cfg.name)
-        try:
-            if args.json:
-                json.dump(json_ready(summary), sys.stdout, indent=2)
-                sys.stdout.write("\n")
-            else:
-                requested = args.rerun or cfg.telemetry.rerun
-                mode = ("auto-headless" if requested == "auto" and outcome.dashboard_mode == "off"
-                        else outcome.dashboard_mode)
-                sys.stdout.write(summary_text(
-                    summary, clock=getattr(cfg.backend, "clock", "realtime"),
-                    rate_hz=cfg.backend.imu_rate_hz, dashboard_mode=mode,
-                    dashboard_file=str(outcome.dashboard_file) if outcome.dashboard_file
-                    else None, extra=mavlink_summary_lines(outcome.record_path)))
-            sys.stdout.flush()
-        except OSError:  # stdout was the terminal that hung up: the record and events stand
-            pass
-        planned = summary["end_reason"] in ("touchdown", "mission complete") or (
-            args.props_off and summary["end_reason"].startswith("props-off bench test complete"))
-        return 0 if planned else 1
+        if signals.count:  # while the files loaded: nothing was started
+            raise SessionInterruptedError("stopped while loading the session: nothing was "
+                                          "armed")
+        outcome = session.run()
+    except SessionInterruptedError as exc:
+        console.stop()  # its last lines first; this one after, on a line of its own
+        print(f"fasthex: {signals.describe()}: {exc}", file=sys.stderr)
+        return 1
+    except SessionError as exc:
+        raise UserError(str(exc)) from None
     finally:
-        signals.restore()
+        if signals.hangup:  # the terminal is gone: print nothing more to it
+            console.broken = True
+        console.stop()
+    summary = flight_summary(outcome, params, cfg.name)
+    try:
+        if args.json:
+            json.dump(json_ready(summary), sys.stdout, indent=2)
+            sys.stdout.write("\n")
+        else:
+            requested = args.rerun or cfg.telemetry.rerun
+            mode = ("auto-headless" if requested == "auto" and outcome.dashboard_mode == "off"
+                    else outcome.dashboard_mode)
+            sys.stdout.write(summary_text(
+                summary, clock=getattr(cfg.backend, "clock", "realtime"),
+                rate_hz=cfg.backend.imu_rate_hz, dashboard_mode=mode,
+                dashboard_file=str(outcome.dashboard_file) if outcome.dashboard_file
+                else None, extra=mavlink_summary_lines(outcome.record_path)))
+        sys.stdout.flush()
+    except OSError:  # stdout was the terminal that hung up: the record and events stand
+        pass
+    planned = summary["end_reason"] in ("touchdown", "mission complete") or (
+        args.props_off and summary["end_reason"].startswith("props-off bench test complete"))
+    return 0 if planned else 1
 
 
 def record_path(cli: str | None, configured: str, session_file: Path, session: str) -> Path:

@@ -19,11 +19,13 @@ import termios
 import threading
 from pathlib import Path
 
-from flight_support import SESSION, SHORT_MISSION
+from flight_support import SESSION, SHORT_MISSION, short_session
 from terminal_support import screen
 
+from groundstation.session import FlightSession
+
 STATES = ("PREFLIGHT", "ARMED", "TAKEOFF", "MISSION", "LANDING", "DISARMED", "CUT")
-STATUS_RE = re.compile(rf"^({'|'.join(STATES)})\s+\d+\.\d s  pos\. error ")
+STATUS_RE = re.compile(rf"^({'|'.join(STATES)})\s+(\d+\.\d|--) s  pos\. error ")
 NAN_INF_RE = re.compile(r"\b(nan|inf)\b", re.IGNORECASE)
 
 
@@ -148,3 +150,32 @@ def test_that_a_fault_that_changes_no_state_is_an_event_when_it_happens(tmp_path
     told_at = events.index(f"FAULT {fault}")
     assert "ARMED -> TAKEOFF" in " ".join(events[:told_at])  # the fault comes at 5 s
     assert "-> DISARMED" in " ".join(events[told_at:])
+
+
+def test_that_the_status_line_shows_the_time_since_take_off(tmp_path: Path) -> None:
+    """The status line's time is the flight's (README): ``--`` before take-off, then counted
+    from take-off; it showed the session's time (``TAKEOFF 7.0 s`` for a take-off that
+    started at 2.0 s). Lockstep: each transition event comes at a known session time, with the
+    status line as the loop last wrote it (every 50 ticks)."""
+    # Fixture
+    cfg, params, mission = short_session(tmp_path)
+    seen: list[tuple[str, str]] = []  # (event, the status line when it was told)
+
+    def on_event(text: str) -> None:
+        seen.append((text, session.loop.status if session.loop is not None else ""))
+
+    session = FlightSession(cfg, params, mission, record_path=tmp_path / "status.fhr",
+                            echo_events=False, on_event=on_event, dashboard="off")
+    # Test
+    outcome = session.run()
+    # Assert
+    assert outcome.result.end_reason == "mission complete"
+    at = {m.group(2): (float(m.group(1)), status) for text, status in seen
+          if (m := re.match(r"(\d+\.\d+) s (\w+ -> \w+):", text))}
+    takeoff_s, before = at["ARMED -> TAKEOFF"]
+    assert re.match(r"ARMED\s+-- s  pos\. error ", before), before  # no flight time yet
+    mission_s, during = at["TAKEOFF -> MISSION"]
+    m = re.match(r"TAKEOFF\s+(\d+\.\d) s  pos\. error ", during)
+    assert m is not None, during
+    # written within the last 50 ticks (0.1 s) before the transition, counted from take-off
+    assert mission_s - takeoff_s - 0.15 <= float(m.group(1)) <= mission_s - takeoff_s, during

@@ -65,6 +65,13 @@ CASES = [
     ("too heavy to fly", ("mass_kg: 3.1", "mass_kg: 5.0"), "mass_kg", "mass_kg",
      "weight 49.1 N needs >= 20 % thrust margin, but the rotors lift at most 50.6 N at the "
      "largest tilt"),
+    # the tilt, not the mass, leaves no lift: at 90 deg no thrust is vertical
+    ("tilt that leaves no lift", ("max_tilt_deg: 35.0           # |alpha| in [0, 35] deg\n"
+                                  "  mechanical_limit_deg: 35.0",
+                                  "max_tilt_deg: 90.0\n  mechanical_limit_deg: 90.0"),
+     "max_tilt_deg", "tilt.max_tilt_deg",
+     "at 90 deg the rotors lift at most 0.0 N, but the weight 30.4 N needs >= 20 % thrust "
+     "margin; expected at most 53.8 deg"),
 ]
 
 

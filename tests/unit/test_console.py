@@ -118,6 +118,32 @@ def test_that_the_summary_is_a_table_with_units_and_no_raw_keys() -> None:
     assert max(len(line) for line in text.splitlines()) <= 79  # an 80-column terminal
 
 
+def test_that_the_tick_count_is_not_read_as_ticks_of_flight() -> None:
+    # 43484 ticks at 500 Hz are 87.0 s of session (preflight and arming included), while the
+    # flight (from take-off) lasted 85.0 s: "85.0 s of flight (43484 ticks at 500 Hz)" read as
+    # if the ticks were the flight's
+    text = summary_text(_summary(), clock="lockstep", rate_hz=500.0)
+    assert "flown:         85.0 s of flight in 61.6 s wall, 1.4x real time\n" in text, text
+    assert "loop:          43484 ticks in all (87.0 s at 500 Hz, preflight included)\n" in text
+    assert "(43484 ticks at 500 Hz)" not in text
+
+
+def test_that_spin_limits_are_not_claimed_when_no_tick_was_scored() -> None:
+    # a Ctrl-C during take-off: no measured tick, every metric "--", time scored 0.0
+    summary = _summary()
+    for phase in ("all", "udt", "mdt"):
+        summary[f"{phase}_ticks"] = 0.0
+        summary[f"{phase}_duration_s"] = 0.0
+        for key in ("pos_err_mean_mm", "spin_min_hz", "spin_max_hz"):
+            summary[f"{phase}_{key}"] = math.nan
+    summary["all_spin_within_limits"] = 1.0  # vacuously: no tick to be outside them
+    text = summary_text(summary)
+    assert "respected on every tick" not in text
+    assert "rotor spin limits: not scored (no measured tick)" in text
+    # scored ticks: the verdict stands
+    assert "rotor spin limits: respected on every tick" in summary_text(_summary())
+
+
 def test_that_a_saved_dashboard_file_is_named_with_how_to_open_it() -> None:
     text = summary_text(_summary(), dashboard_mode="save", dashboard_file="flights/x.rrd")
     assert "dashboard:      flights/x.rrd" in text and "rerun flights/x.rrd" in text

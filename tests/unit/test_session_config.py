@@ -63,6 +63,37 @@ def test_that_a_malformed_session_gives_its_precise_message(
     assert str(info.value).startswith(f"{path}:{_line_of(text, fragment)}: {message}")
 
 
+def test_that_a_missing_backend_names_its_kinds_not_python_classes(tmp_path: Path) -> None:
+    # the backend is a union of two dataclasses told apart by `kind`: the expectation names
+    # the kinds a user can write, not "groundstation.session_config.HardwareBackend | ..."
+    start = GOOD.index("backend:\n")
+    end = GOOD.index("estimator:\n")
+    text = GOOD[:start] + GOOD[end:]
+    path = tmp_path / "session.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_session(path)
+    assert str(info.value) == (f"{path}:{_line_of(text, 'schema:')}: backend: missing key; "
+                               "expected a mapping with kind: hardware or kind: emulated")
+
+
+def test_that_other_missing_keys_name_what_to_write_not_python_types(tmp_path: Path) -> None:
+    from groundstation.configs import load_mission
+
+    cases = [  # (file, text without the key, the message's tail)
+        ("session.yaml", GOOD.replace("name: exp1-emulated\n", ""),
+         "name: missing key; expected a text value"),
+        ("mission.yaml", find_config("missions", "exp2a-sine-translation").read_text()
+         .replace("    axis: x\n", ""),
+         "missing key; expected one of 'x', 'y', 'z'")]
+    for name, text, tail in cases:
+        path = tmp_path / name
+        path.write_text(text)
+        with pytest.raises(ConfigError) as info:
+            load_session(path) if name == "session.yaml" else load_mission(path)
+        assert str(info.value).endswith(tail), str(info.value)
+
+
 def test_that_a_session_naming_a_missing_mission_is_refused(tmp_path: Path) -> None:
     path = tmp_path / "session.yaml"
     text = GOOD.replace("mission: exp1-hover-tilt-steps", "mission: exp9")
