@@ -156,9 +156,19 @@ class LoopOptions:
     scripted_requests: tuple[tuple[float, str], ...] = ()
 
 
-def _ppm_error(sigma_ppm: float) -> str:
-    """A clock drift's error bar (the clock sync has none from its first two blocks)."""
-    return f"+- {sigma_ppm:.0f} ppm" if math.isfinite(sigma_ppm) else "ppm (first estimate)"
+#: a clock drift known no better than this (ppm) is not shown as a value: crystals drift by
+#: tens of ppm, and after the preflight's ~1 s of samples the error bar can be 1e4 ppm
+DRIFT_SHOWN_SIGMA_PPM = 1000.0
+
+
+def _drift(drift_ppm: float, sigma_ppm: float) -> str:
+    """A clock drift with its error bar (the clock sync has none from its first two blocks),
+    or that it is not measured yet."""
+    if not math.isfinite(sigma_ppm):
+        return f"drift {drift_ppm:+.0f} ppm (first estimate)"
+    if sigma_ppm > DRIFT_SHOWN_SIGMA_PPM:
+        return f"drift not measured yet (+- {sigma_ppm:.0f} ppm)"
+    return f"drift {drift_ppm:+.0f} +- {sigma_ppm:.0f} ppm"
 
 
 def prepared_computer(params: VehicleParams, mission: Mission) -> FlightComputer:
@@ -703,7 +713,7 @@ class FlightLoop:
             clk = stats.imu_clock  # the board's sample clock against ours (clock sync)
             if clk.known:
                 imu_value += (f"; board clock {clk.rate_hz:.1f} Hz, offset {clk.offset_s:+.3f} s,"
-                              f" drift {clk.drift_ppm:+.0f} {_ppm_error(clk.drift_sigma_ppm)}")
+                              f" {_drift(clk.drift_ppm, clk.drift_sigma_ppm)}")
         checks = [
             ("flight-ctrl streaming IMU at 80-125 % of the set rate", imu_ok, imu_value),
             ("servo answers, multi-turn, at the commanded angle",
@@ -715,8 +725,8 @@ class FlightLoop:
             ("MoCap sees the body at >= 80 % of its rate",
              pose_age_s < 0.1 and (mstats.rate_hz >= 80.0 or self.opts.lockstep),
              f"{mstats.rate_hz:.0f} Hz, newest pose {1e3 * pose_age_s:.0f} ms old"
-             + (f"; server clock offset {mstats.clock_offset_s:+.3f} s, drift "
-                f"{mstats.clock_drift_ppm:+.0f} {_ppm_error(mstats.clock_drift_sigma_ppm)}"
+             + (f"; server clock offset {mstats.clock_offset_s:+.3f} s, "
+                f"{_drift(mstats.clock_drift_ppm, mstats.clock_drift_sigma_ppm)}"
                 if math.isfinite(mstats.clock_drift_ppm)
                 else "")),
             ("estimator converged", initialized and self.ukf.health().ok,

@@ -319,13 +319,22 @@ def _check_geofence(mission: object, safety: SafetyConfig, mission_file: str,
                     mission_lines: dict[str, int], session_path: Path,
                     session_lines: dict[str, int]) -> None:
     """Every reference position of the mission inside the geofence, less the margin."""
+    fence = (f"the geofence of {session_path} (line "
+             f"{line_of(session_lines, 'safety.geofence_min_m')})")
+    check_mission_in_box(mission, safety.geofence_min_m, safety.geofence_max_m, fence,
+                         mission_file, mission_lines)
+
+
+def check_mission_in_box(mission: object, box_min_m: Vec3, box_max_m: Vec3, box: str,
+                         mission_file: str, mission_lines: dict[str, int]) -> None:
+    """Every reference position of the mission inside the box (``box`` names it), less
+    GEOFENCE_MARGIN_M: a ConfigError at the mission's line otherwise."""
     from controller.missions import MissionSpec, segment_extents_w_m
 
     assert isinstance(mission, MissionSpec)
-    lo_fence = tuple(v + GEOFENCE_MARGIN_M for v in safety.geofence_min_m)
-    hi_fence = tuple(v - GEOFENCE_MARGIN_M for v in safety.geofence_max_m)
-    fence = (f"the geofence of {session_path} (line "
-             f"{line_of(session_lines, 'safety.geofence_min_m')}) less {GEOFENCE_MARGIN_M:g} m")
+    lo_fence = tuple(v + GEOFENCE_MARGIN_M for v in box_min_m)
+    hi_fence = tuple(v - GEOFENCE_MARGIN_M for v in box_max_m)
+    fence = f"{box} less {GEOFENCE_MARGIN_M:g} m"
     checks: list[tuple[str, Vec3, Vec3]] = [
         ("start_pos_w_m", mission.start_pos_w_m, mission.start_pos_w_m)]
     for i, (seg, (lo, hi)) in enumerate(zip(mission.segments, segment_extents_w_m(mission),

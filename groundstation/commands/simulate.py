@@ -108,7 +108,9 @@ def simulate(args: argparse.Namespace) -> dict[str, Any]:
     from groundstation.simulation import simulate_flight
 
     params = load_vehicle(args.vehicle)
-    mission = Mission(load_mission(args.mission, vehicle=params))  # checked against it
+    lines: dict[str, int] = {}
+    spec = load_mission(args.mission, vehicle=params, lines=lines)  # checked against it
+    mission = Mission(spec)
     preset = load_disturbances(args.preset)
     scenario = None
     if getattr(args, "scenario", None):
@@ -117,6 +119,16 @@ def simulate(args: argparse.Namespace) -> dict[str, Any]:
     if args.duration is not None and not args.duration > 0.0:
         raise UserError(f"--duration must be positive, got {args.duration}")
     limits = _crash_limits(args)
+    if limits.workspace_min_w_m is not None and limits.workspace_max_w_m is not None:
+        # as fly checks it against the geofence: a reference that leaves the box is a plan's
+        # error, not a crash to fly into
+        from config import find_config
+        from groundstation.session_config import check_mission_in_box
+
+        box = ("the --workspace box" if args.workspace is not None
+               else "the default workspace (a session's default geofence)")
+        check_mission_in_box(spec, limits.workspace_min_w_m, limits.workspace_max_w_m, box,
+                             str(find_config("missions", args.mission)), lines)
     tilt = None if args.tilt_deg is None else math.radians(args.tilt_deg)
     lo_deg, hi_deg = params.tilt.min_tilt_deg, params.tilt.max_tilt_deg
     if args.tilt_deg is not None and not lo_deg <= args.tilt_deg <= hi_deg:

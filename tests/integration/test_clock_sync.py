@@ -28,6 +28,7 @@ from drivers.mikrokopter import FlightCtrl
 from drivers.mocap.natnet_client import NatNetClient, NatNetConfig
 from drivers.mocap.vrpn_client import VrpnClient, VrpnConfig
 from groundstation.configs import load_mission, load_vehicle
+from groundstation.loop import DRIFT_SHOWN_SIGMA_PPM
 from groundstation.session import FlightSession
 from groundstation.session_config import load_session
 from sim_backend.emulators.flightctrl import EmulatedFlightCtrl, FlightCtrlEmulatorConfig
@@ -172,21 +173,29 @@ def test_the_preflight_reports_the_board_and_mocap_clocks(tmp_path: Path) -> Non
     mocap_ok, mocap = checks["MoCap sees the body at >= 80 % of its rate"]
     print(imu, "|", mocap)
     assert imu_ok and mocap_ok
-    board = re.search(r"board clock ([0-9.]+) Hz, offset ([-+0-9.]+) s, drift ([-+0-9]+) "
-                      r"(?:\+- ([0-9]+) ppm|ppm \(first estimate\))", imu)
+    board = re.search(r"board clock ([0-9.]+) Hz, offset ([-+0-9.]+) s, (?:drift ([-+0-9]+) "
+                      r"(?:\+- ([0-9]+) ppm|ppm \(first estimate\))|drift not measured yet "
+                      r"\(\+- ([0-9]+) ppm\))", imu)
     assert board is not None, imu
     # After ~1 s of preflight the estimate stands on a few host-stamped blocks; on a loaded host
     # their minima scatter (CI runs read 495 and 496 Hz for 494, one with a 76620 ppm error
     # bar). The preflight must report the truth within the error bar it prints (3 sigma), and
     # no looser than 0.2 % where the bar is tighter; the half-minute test holds 20 ppm.
-    rate_hz, drift_ppm = float(board.group(1)), float(board.group(3))
-    bar_ppm = max(2000.0, 3.0 * float(board.group(4))) if board.group(4) else 2000.0
-    assert abs(drift_ppm - BOARD_PPM) <= bar_ppm, imu
-    # the printed rate is the printed drift applied to the set 500 Hz (to the 0.1 Hz printed)
-    assert rate_hz == pytest.approx(500.0 * (1 + drift_ppm * 1e-6), abs=0.051)
-    server = re.search(r"server clock offset ([-+0-9.]+) s, drift ([-+0-9]+) "
-                       r"(?:\+- ([0-9]+) ppm|ppm \(first estimate\))", mocap)
+    # an error bar above DRIFT_SHOWN_SIGMA_PPM prints no value ("not measured yet")
+    if board.group(5) is not None:
+        assert float(board.group(5)) > DRIFT_SHOWN_SIGMA_PPM, imu
+    else:
+        rate_hz, drift_ppm = float(board.group(1)), float(board.group(3))
+        bar_ppm = max(2000.0, 3.0 * float(board.group(4))) if board.group(4) else 2000.0
+        assert abs(drift_ppm - BOARD_PPM) <= bar_ppm, imu
+        # the printed rate is the printed drift applied to the set 500 Hz (to the 0.1 Hz)
+        assert rate_hz == pytest.approx(500.0 * (1 + drift_ppm * 1e-6), abs=0.051)
+    server = re.search(r"server clock offset ([-+0-9.]+) s, (?:drift ([-+0-9]+) "
+                       r"(?:\+- ([0-9]+) ppm|ppm \(first estimate\))|drift not measured yet "
+                       r"\(\+- ([0-9]+) ppm\))", mocap)
     assert server is not None, mocap
+    if server.group(4) is not None:
+        assert float(server.group(4)) > DRIFT_SHOWN_SIGMA_PPM, mocap
     # the server's clock has no rate error. After ~1 s the estimate stands on a few blocks, and
     # the MoCap stream's first frames arrive late (start-up), which reads as a fast clock: seen
     # here +7000..+17000 ppm with error bars of 2400..6400 ppm. The preflight must report it

@@ -192,15 +192,35 @@ def test_that_a_drop_from_hover_is_a_crash_with_the_free_fall_impact_speed() -> 
     assert out["sim_time_s"] < 5.5  # the flight ended at the crash
 
 
-def test_that_leaving_the_workspace_is_a_crash(capsys: pytest.CaptureFixture[str]) -> None:
-    # Test: Exp. 1 takes off to z = 1 m; a workspace topped at 0.8 m is left on the way up
+def test_that_a_mission_leaving_the_workspace_is_refused(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    # Test: Exp. 1 takes off to z = 1 m; a workspace topped at 0.8 m cannot hold it
     code = main(["simulate", "--preset", "ideal", "--duration", "6", "--workspace",
                  "-3", "-3", "-0.5", "3", "3", "0.8"])
     captured = capsys.readouterr()
+    # Assert: one line at the take-off's height, nothing flown
+    assert code == 2 and captured.out == ""
+    assert captured.err.endswith("exp1-hover-tilt-steps.yaml:12: segments[0].height_m: reaches "
+                                 "z = 1 m, outside the --workspace box less 0.1 m "
+                                 "(-0.4..0.7 m)\n")
+
+
+def test_that_leaving_the_workspace_is_a_crash() -> None:
+    # Fixture: the workspace check at load bypassed (a disturbance could push a vehicle out of
+    # a box its mission stays in; here the take-off to 1 m leaves a box topped at 0.8 m)
+    from controller.missions import Mission
+    from groundstation.configs import load_disturbances, load_mission, load_vehicle
+    from groundstation.simulation import simulate_flight
+    from sim_backend.closed_loop import CrashLimits
+
+    limits = CrashLimits(workspace_min_w_m=(-3.0, -3.0, -0.5), workspace_max_w_m=(3.0, 3.0, 0.8))
+    # Test
+    out = simulate_flight(load_vehicle(), Mission(load_mission("exp1-hover-tilt-steps")),
+                          load_disturbances("ideal"), duration_s=6.0, crash_limits=limits)
     # Assert
-    assert code == 1
-    assert "verdict: CRASH: left the workspace" in captured.out
-    assert "z outside [-0.5, 0.8] m" in captured.err
+    assert out["verdict"] == "crash" and out["crash_kind"] == "workspace"
+    assert "left the workspace" in out["crash_reason"]
+    assert "z outside [-0.5, 0.8] m" in out["crash_reason"]
 
 
 def test_that_a_nominal_flight_has_the_verdict_ok(capsys: pytest.CaptureFixture[str]) -> None:

@@ -168,3 +168,14 @@ def test_that_an_upside_down_estimate_a_hair_off_unit_reads_180_deg_not_an_error
                        (0.0, 0.0, 0.0))
     h = loop._health(0.0, True, 0.01, True, ServoHealth.OK, 16.0, est, False, "mission", True)
     assert h.body_tilt_deg == 180.0
+
+
+def test_that_a_drift_known_worse_than_a_tenth_of_a_percent_is_not_shown_as_a_value() -> None:
+    from groundstation.loop import DRIFT_SHOWN_SIGMA_PPM, _drift
+
+    assert DRIFT_SHOWN_SIGMA_PPM == 1000.0
+    assert _drift(-12000.0, 3.0) == "drift -12000 +- 3 ppm"
+    assert _drift(8337.0, 1000.0) == "drift +8337 +- 1000 ppm"
+    # a realtime preflight's MoCap server clock after ~1 s of frames (the emulator's is exact)
+    assert _drift(8337.0, 15085.0) == "drift not measured yet (+- 15085 ppm)"
+    assert _drift(25.0, math.inf) == "drift +25 ppm (first estimate)"
