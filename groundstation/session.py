@@ -56,7 +56,7 @@ from groundstation.record import RECORD_DTYPE, RecordWriter
 from groundstation.session_config import EmulatedBackend, HardwareBackend, SessionConfig
 from groundstation.signals import ignore_stop_signals, stop_signals_blocked
 from groundstation.telemetry import TelemetryRing
-from sim_backend.backend import SERVO_ZERO_OFFSET_STEPS
+from sim_backend.backend import SERVO_ZERO_OFFSET_STEPS, TEMPORARY_MARKER
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -368,6 +368,8 @@ class FlightSession:
         self.mavlink: GcsOptions | None = gcs_options(
             self.mavlink_uri, cfg.telemetry, record_path, cli_key_file=mavlink_key_file)
         self._tmp = None if session_dir else tempfile.TemporaryDirectory(prefix="fasthex-")
+        if self._tmp is not None:  # an emulator orphaned by a kill -9 removes it (backend.py)
+            (Path(self._tmp.name) / TEMPORARY_MARKER).touch()
         self.session_dir = session_dir or Path(self._tmp.name)  # type: ignore[union-attr]
         self.emulator: EmulatorProcess | None = None
         self.loop: FlightLoop | None = None

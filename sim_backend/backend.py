@@ -498,9 +498,18 @@ def main(argv: list[str] | None = None) -> int:
                 stop.orphaned = True
                 break
         if stop.orphaned or os.getppid() != parent:
+            stop.orphaned = True
             _await_watchdog(backend, args.link_dir)
     finally:
         backend.stop()
+        # a ground station gone (kill -9) cannot remove the temporary folder it made for the
+        # links (and the truth log, megabytes): the emulator, its last user, does (the note
+        # on the watchdog went to the log above)
+        link_dir = args.link_dir
+        if stop.orphaned and link_dir is not None and (link_dir / TEMPORARY_MARKER).exists():
+            import shutil
+
+            shutil.rmtree(link_dir, ignore_errors=True)
         # the board's counters, for the ground station's events (stream slips: the emulator
         # fell behind its own clock; watchdog trips: no `w` for the watchdog time)
         with contextlib.suppress(Exception):
@@ -543,6 +552,11 @@ class _StopFlags:
                     with contextlib.suppress(OSError):
                         os.read(self._r, 512)
         return self.stop
+
+
+#: in a link folder, a file saying the ground station made the folder for one session (a
+#: temporary folder): an emulator orphaned by a killed ground station removes that folder
+TEMPORARY_MARKER = ".fasthex-temporary"
 
 
 def _await_watchdog(backend: EmulatedVehicleBackend, link_dir: Path | None) -> None:

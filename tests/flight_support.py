@@ -134,6 +134,20 @@ def fly_long_hover_in_this_process(tmp: str) -> None:
                   echo_events=False).run()
 
 
+def fly_long_hover_in_a_temporary_folder(tmp: str) -> None:
+    """Child-process entry: the same session with its links in a temporary folder of the
+    session's own making, under ``tmp/t`` (as ``fasthex fly`` makes one)."""
+    import tempfile
+
+    tmp_path = Path(tmp)
+    (tmp_path / "t").mkdir(exist_ok=True)
+    tempfile.tempdir = str(tmp_path / "t")
+    cfg, params, mission = short_session(
+        tmp_path, mission=SHORT_MISSION.replace("duration_s: 4.0", "duration_s: 60.0"))
+    FlightSession(cfg, params, mission, record_path=tmp_path / "killed.fhr",
+                  echo_events=False).run()
+
+
 def fly_shipped_session(tmp_path: Path, session: str, seed: int = 1,
                         requests: tuple[tuple[float, str], ...] = ()) -> SessionOutcome:
     """One of the shipped emulated sessions (the paper's experiments), lockstep, no dashboard;

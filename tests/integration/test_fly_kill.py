@@ -164,3 +164,37 @@ def test_that_kill_9_of_the_ground_station_in_its_start_up_leaves_no_telemetry_p
         for pid in telemetry:
             with contextlib.suppress(OSError):
                 os.kill(pid, signal.SIGKILL)
+
+
+def test_that_kill_9_of_the_ground_station_leaves_no_temporary_folder(tmp_path: Path) -> None:
+    """The session's temporary folder (the emulator's links, its truth log) cannot be removed
+    by a ground station killed with SIGKILL: the emulator, orphaned, removes it once its
+    watchdog has stopped the motors."""
+    from flight_support import fly_long_hover_in_a_temporary_folder
+
+    # Fixture: a lockstep session hovering for a minute, its folder under tmp_path/t
+    proc = mp.get_context("spawn").Process(target=fly_long_hover_in_a_temporary_folder,
+                                           args=(str(tmp_path),))
+    proc.start()
+    assert proc.pid is not None
+
+    def folders() -> list[str]:
+        return [p.name for p in (tmp_path / "t").glob("fasthex-*")]
+
+    def rows_written() -> int:
+        try:
+            return len(read_record(tmp_path / "killed.fhr").rows)
+        except (OSError, ValueError):
+            return 0
+
+    try:
+        assert _wait_for(lambda: rows_written() >= 3000, 120.0)  # airborne
+        assert len(folders()) == 1
+        # Test
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.join(timeout=10)
+        # Assert: gone once the emulator's watchdog wait (at most 10 s) is over
+        assert _wait_for(lambda: not folders(), 30.0), folders()
+    finally:
+        if proc.is_alive():
+            os.kill(proc.pid, signal.SIGKILL)
