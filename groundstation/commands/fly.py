@@ -207,14 +207,15 @@ def record_path(cli: str | None, configured: str, session_file: Path, session: s
     return Path("flights") / f"{session}-{stamp}.fhr"
 
 
-def make_record_folder(record: Path) -> None:
-    """Create the flight record's folder and its parents; a ``UserError`` if that fails."""
+def make_record_folder(record: Path, what: str = "the record's") -> None:
+    """Create the flight record's folder and its parents (``what``: whose folder, for the
+    message); a ``UserError`` if that fails."""
     from groundstation.cli import UserError
 
     try:
         record.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise UserError(f"cannot create the record's folder {record.parent}: "
+        raise UserError(f"cannot create {what} folder {record.parent}: "
                         f"{exc.strerror}") from None
 
 

@@ -57,6 +57,15 @@ def run(args: argparse.Namespace) -> int:
     # pacing only means something to someone watching a viewer
     speed = args.speed or ("realtime" if mode in ("spawn", "serve") else "max")
     out = Path(args.out) if args.out else (path.with_suffix(".rrd") if mode == "save" else None)
+    if out is not None:  # a bad path fails here, not as a warning of rerun's after the replay
+        from groundstation.commands.fly import make_record_folder
+
+        make_record_folder(out, "the dashboard file's")
+        try:
+            out.open("wb").close()
+        except OSError as exc:
+            raise UserError(f"--out {out}: cannot write the dashboard file ({exc.strerror}); "
+                            "expected a file path") from None
     events_file = path.with_name(path.name + ".events.txt")
     events = parse_events(events_file.read_text(encoding="utf-8", errors="replace")) \
         if events_file.is_file() else []

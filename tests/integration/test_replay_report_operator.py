@@ -94,3 +94,22 @@ def test_that_the_report_metrics_are_rounded(record: Path, tmp_path: Path) -> No
             assert len(repr(value).split(".")[-1]) <= 4, (key, value)
     assert metrics["all_duration_s"] == pytest.approx(
         float(np.count_nonzero(read_record(record).rows["measured"])) * 0.002, abs=0.01)
+
+
+def test_that_replay_out_in_a_bad_place_is_one_line_before_any_replay(
+        record: Path, tmp_path: Path) -> None:
+    # Fixture: a folder, and a path under a regular file
+    under_file = record / "x.rrd"
+    # Test / Assert: one line, exit 2, nothing replayed (rerun used to warn after the replay)
+    res = _cli("replay", str(record), "--rerun", "save", "--out", str(tmp_path))
+    assert (res.returncode, res.stdout) == (2, "")
+    assert res.stderr == (f"fasthex: --out {tmp_path}: cannot write the dashboard file (Is a "
+                          "directory); expected a file path\n")
+    res = _cli("replay", str(record), "--rerun", "save", "--out", str(under_file))
+    assert (res.returncode, res.stdout) == (2, "")
+    assert res.stderr == (f"fasthex: cannot create the dashboard file's folder {record}: File "
+                          "exists\n")
+    # a missing folder is made, as fly makes the record's
+    res = _cli("replay", str(record), "--rerun", "save", "--out", str(tmp_path / "a" / "b.rrd"))
+    assert res.returncode == 0, res.stderr
+    assert (tmp_path / "a" / "b.rrd").stat().st_size > 100_000
