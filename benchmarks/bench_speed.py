@@ -20,8 +20,11 @@ baseline it is judged against, measured in the same run.
   pty round trip (the wait a lockstep tick follows) with and without the hold, show what a
   CPU that sleeps between ticks costs the same code.
 - ``fasthex simulate --estimator ukf``: >= 30x; ``fasthex simulate`` (truth + noise): >= 60x.
-- Realtime 1 kHz emulated session against the same at 500 Hz: misses < 0.1 %, compute p99
-  < 0.5 ms, position error no worse. The flights are the shipped sessions ``exp1-emulated``
+- Realtime 1 kHz emulated session against the same at 500 Hz, two flights of each,
+  alternated: misses < 0.1 % and compute p99 < 0.5 ms in the worst flight, mean position error
+  no worse than at 500 Hz beyond the realtime flights' spread (+10 %: one flight's e_p varies
+  by +-0.3 mm with the host's timing, 4.89-5.46 mm seen at either rate; the strict comparison
+  is the lockstep one, same seed). The flights are the shipped sessions ``exp1-emulated``
   and ``exp1-emulated-1khz`` (their safety settings) on the clock the row names; the tracking
   at 1 kHz is also compared in lockstep (same seed: deterministic, no host noise).
 
@@ -29,8 +32,8 @@ The per-tick breakdown (medians, us): the simulator's physics step, the truth+no
 source, the UKF (predict, and the update spread over the ticks), the controller, the record
 row; it says where a simulated tick goes.
 
-Run: ``python benchmarks/bench_speed.py [--realtime-s 60] [--skip-realtime]``; the realtime
-pair flies Exp. 1's first ``--realtime-s`` seconds at 500 Hz and at 1 kHz, back to back.
+Run: ``python benchmarks/bench_speed.py [--realtime-s 60] [--skip-realtime]``; the two realtime
+pairs fly Exp. 1's first ``--realtime-s`` seconds at 500 Hz and at 1 kHz, alternated.
 Machines are noisy (2 shared cores here): compare the ratios, not the absolute figures.
 """
 
@@ -78,6 +81,8 @@ ROOT = Path(__file__).resolve().parents[1]
 T = TypeVar("T")
 EXP1 = "exp1-hover-tilt-steps"
 LOCKSTEP_FLIGHTS = 3
+#: realtime flights per rate (alternated): a realtime flight's tracking varies with the host
+REALTIME_PAIRS = 2
 
 
 def row(figure: str, value: str, baseline: str, ratio: str, target: str, met: bool) -> None:
@@ -319,9 +324,16 @@ def main() -> int:
         lock_idle = fly(tmp, "lockstep", 500.0, None, realtime_settings=False)
         lock_1k = fly(tmp, "lockstep", 1000.0, None)   # deterministic: tracking 1 kHz vs 500 Hz
         lock_errs = {500.0: pos_err_mm(lock.record_path), 1000.0: pos_err_mm(lock_1k.record_path)}
-        rt = {} if args.skip_realtime else {
-            rate: fly(tmp, "realtime", rate, args.realtime_s) for rate in (500.0, 1000.0)}
-        errs = {r: pos_err_mm(o.record_path) for r, o in rt.items()}
+        # realtime pairs, alternated: one realtime flight's e_p varies by +-0.3 mm with the
+        # host's timing (4.89-5.46 mm seen at either rate), so the rates are compared on means
+        rt_runs: dict[float, list[tuple[SessionOutcome, float]]] = {500.0: [], 1000.0: []}
+        for _ in range(0 if args.skip_realtime else REALTIME_PAIRS):
+            for rate in (500.0, 1000.0):
+                out = fly(tmp, "realtime", rate, args.realtime_s)
+                rt_runs[rate].append((out, pos_err_mm(out.record_path)))  # before the next
+        rt = {rate: runs[-1][0] for rate, runs in rt_runs.items() if runs}
+        errs = {rate: float(np.mean([e for _, e in runs])) for rate, runs in rt_runs.items()
+                if runs}
 
     print("\nper simulated tick (medians, us): " + ", ".join(
         f"{k} {v:.1f}" for k, v in parts.items()))
@@ -385,15 +397,23 @@ def main() -> int:
         f"{lock_errs[1000.0] / lock_errs[500.0]:.2f}x", "<= 500 Hz",
         lock_errs[1000.0] <= lock_errs[500.0])
     if rt:
-        a, b = rt[500.0].result, rt[1000.0].result
-        ta, tb = a.timing, b.timing
+        for rate, runs in rt_runs.items():
+            print(f"realtime {rate:.0f} Hz flights: " + "; ".join(
+                f"misses {100 * o.result.timing.miss_fraction:.3f} %, compute p99 "
+                f"{o.result.timing.compute_p99_ms:.3f} ms, e_p {e:.2f} mm" for o, e in runs))
+        # the worst of the flights for misses and p99, the mean for the tracking
+        miss = {r: max(o.result.timing.miss_fraction for o, _ in runs)
+                for r, runs in rt_runs.items()}
+        p99 = {r: max(o.result.timing.compute_p99_ms for o, _ in runs)
+               for r, runs in rt_runs.items()}
         ea, eb = errs[500.0], errs[1000.0]
-        row("realtime 1 kHz session", f"misses {100 * tb.miss_fraction:.3f} %, compute p99 "
-            f"{tb.compute_p99_ms:.3f} ms, e_p {eb:.2f} mm",
-            f"500 Hz: misses {100 * ta.miss_fraction:.3f} %, p99 {ta.compute_p99_ms:.3f} ms, "
-            f"e_p {ea:.2f} mm", f"p99 {tb.compute_p99_ms / ta.compute_p99_ms:.2f}x",
-            "< 0.1 %, < 0.5 ms, e_p <= 500 Hz",
-            tb.miss_fraction < 0.001 and tb.compute_p99_ms < 0.5 and eb <= ea * 1.1)
+        row(f"realtime 1 kHz session ({REALTIME_PAIRS} flights each)",
+            f"misses {100 * miss[1000.0]:.3f} %, compute p99 {p99[1000.0]:.3f} ms (worst), "
+            f"e_p {eb:.2f} mm (mean)",
+            f"500 Hz: misses {100 * miss[500.0]:.3f} %, p99 {p99[500.0]:.3f} ms, "
+            f"e_p {ea:.2f} mm", f"p99 {p99[1000.0] / p99[500.0]:.2f}x",
+            "< 0.1 %, < 0.5 ms, e_p <= 500 Hz + 10 %",
+            miss[1000.0] < 0.001 and p99[1000.0] < 0.5 and eb <= ea * 1.1)
     return 0
 
 
