@@ -143,8 +143,15 @@ class FlightComputer:
 @dataclass(frozen=True)
 class LandHere:
     """A failsafe landing: from ``start_pos_w_m`` at ``t0_s`` straight down to ``ground_z_m``
-    (O_B height at rest) at ``descent_m_s``, with a cubic ease-in over the first second; the
-    heading is kept and a level attitude requested. Hands the tilt to the caller (``None``)."""
+    (O_B height at rest) less ``sink_m``; the heading is kept and a level attitude requested.
+    Hands the tilt to the caller (``None``).
+
+    The descent eases in over the first second to ``descent_m_s``, then flares: over the last
+    ``flare_m`` above the ground it slows at a constant rate to ``touchdown_m_s``, which it
+    keeps into the ground (the estimator does not see a harder impact: see
+    ``controller.missions.MAX_TOUCHDOWN_SPEED_M_S``; at 0.3 m/s all the way the vehicle hopped
+    off again). From lower than the ease-in and the flare need, it descends at
+    ``touchdown_m_s`` throughout."""
 
     t0_s: float
     start_pos_w_m: Vec3
@@ -152,22 +159,41 @@ class LandHere:
     ground_z_m: float
     descent_m_s: float = 0.3
     sink_m: float = 0.05  # aim slightly below the gear so the vehicle settles
+    touchdown_m_s: float = 0.12
+    flare_m: float = 0.15
+    ease_s: float = 1.0  # the descent speed follows a smoothstep over the first second
+
+    def _profile(self, tau: float) -> tuple[float, float, float]:
+        """Distance down (m), descent speed (m/s), its rate (m/s^2) at ``tau`` s in."""
+        z0 = self.start_pos_w_m[2]
+        v1 = self.touchdown_m_s
+        to_ground = z0 - self.ground_z_m
+        v0 = self.descent_m_s if to_ground >= 0.5 * self.descent_m_s * self.ease_s \
+            + self.flare_m else v1
+        te = self.ease_s
+        if tau < te:
+            u = tau / te
+            return (v0 * te * (u**3 - 0.5 * u**4), v0 * (3.0 * u**2 - 2.0 * u**3),
+                    v0 * (6.0 * u - 6.0 * u**2) / te)
+        s_e = 0.5 * v0 * te
+        if v0 > v1:  # cruise, then the flare's constant deceleration to v1 at the ground
+            decel = (v0 * v0 - v1 * v1) / (2.0 * self.flare_m)
+            t_cruise = te + (to_ground - self.flare_m - s_e) / v0
+            if tau < t_cruise:
+                return s_e + v0 * (tau - te), v0, 0.0
+            t_flare = (v0 - v1) / decel
+            s_c = to_ground - self.flare_m
+            if tau < t_cruise + t_flare:
+                d = tau - t_cruise
+                return s_c + v0 * d - 0.5 * decel * d * d, v0 - decel * d, -decel
+            return to_ground + v1 * (tau - t_cruise - t_flare), v1, 0.0
+        return s_e + v1 * (tau - te), v1, 0.0
 
     def reference(self, t_s: float, alpha_rad: float) -> Reference:
         x, y, z0 = self.start_pos_w_m
         target = self.ground_z_m - self.sink_m
         drop = max(0.0, z0 - target)
-        tau = max(0.0, t_s - self.t0_s)
-        ease_s = 1.0  # descent speed follows a smoothstep over the first second
-        v = self.descent_m_s
-        if tau < ease_s:
-            u = tau / ease_s
-            dz = v * ease_s * (u**3 - 0.5 * u**4)
-            vz = v * (3.0 * u**2 - 2.0 * u**3)
-            az = v * (6.0 * u - 6.0 * u**2) / ease_s
-        else:
-            dz = v * ease_s / 2.0 + v * (tau - ease_s)
-            vz, az = v, 0.0
+        dz, vz, az = self._profile(max(0.0, t_s - self.t0_s))
         if dz >= drop:
             dz, vz, az = drop, 0.0, 0.0
         return Reference(t_s, (x, y, z0 - dz), (0.0, 0.0, -vz), (0.0, 0.0, -az), self.q_yaw,

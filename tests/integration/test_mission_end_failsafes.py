@@ -128,3 +128,25 @@ def test_that_a_time_limit_shorter_than_the_mission_is_refused(tmp_path: Path) -
         "  session_time_limit_s: 12") + 1
     assert err.value.message == ("12 s ends the session before its mission (12.5 s after 2 s "
                                  "of preflight and spin-up): expected >= 14.5 s")
+
+
+def test_that_a_landing_on_the_estimate_touches_down_slowly_and_stays_down(
+        tmp_path: Path) -> None:
+    # Fixture: the short session, an operator landing (land on the estimate) mid-hover, 0.8 m up
+    cfg, params, mission = short_session(tmp_path)
+    # Test
+    outcome = FlightSession(cfg, params, mission, record_path=tmp_path / "here.fhr",
+                            echo_events=False, scripted_requests=((6.0, "land"),)).run()
+    # Assert: the flare brings the true vehicle to the ground at the landing's touchdown speed
+    # (0.12 m/s, under the 0.18 m/s a land segment may reach), and it does not rise again (at
+    # 0.3 m/s it touched down, the estimate kept descending and the controller lifted it by
+    # 4-7 mm, climbing at 0.10-0.14 m/s)
+    trs = _transitions(outcome)
+    assert [why for _, _, to, why in trs if to is FlightState.LANDING] == ["operator: land"]
+    assert trs[-1][2] is FlightState.DISARMED and trs[-1][3] == "touchdown"
+    rec = read_record(tmp_path / "here.fhr").rows
+    z, vz = rec["pos_w_m"][:, 2], rec["vel_w_m_s"][:, 2]
+    last_aloft = int(np.where(z > GROUND_Z_M + 0.2)[0][-1])
+    contact = last_aloft + int(np.argmax(z[last_aloft:] <= GROUND_Z_M + 0.001))
+    assert -0.15 < vz[contact - 1] < -0.08
+    assert np.max(z[contact:]) - z[contact] < 0.001

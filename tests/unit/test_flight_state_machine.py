@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import replace
 from typing import Any
 
@@ -368,3 +369,30 @@ def test_that_a_session_limit_lands_here_disarms_on_the_ground_or_cuts() -> None
     assert preflight.faults == ["0.500 s: flight record lost"]
     preflight.limit(0.6, "again")  # after the session: nothing
     assert len(preflight.transitions) == 1 and len(preflight.faults) == 1
+
+
+@pytest.mark.parametrize("z0_m", [2.5, 1.0, 0.4, 0.25, 0.12])
+def test_that_a_landing_here_flares_to_its_touchdown_speed_above_the_ground(z0_m: float) -> None:
+    from controller.pipeline import LandHere
+
+    land = LandHere(10.0, (0.3, -0.2, z0_m), (1.0, 0.0, 0.0, 0.0), 0.1)
+    dt = 0.001
+    refs = [land.reference(10.0 + k * dt, 0.0) for k in range(20_000)]
+    z = [r.pos_w_m[2] for r in refs]
+    vz = [r.vel_w_m_s[2] for r in refs]
+    az = [r.acc_w_m_s2[2] for r in refs]
+    # straight down, never up, to 5 cm under the gear, and held there
+    assert all(r.pos_w_m[:2] == (0.3, -0.2) for r in refs)
+    assert all(b <= a + 1e-12 for a, b in itertools.pairwise(z))
+    assert z[-1] == pytest.approx(0.05)
+    # no faster than the descent speed; at the ground height no faster than the touchdown's
+    assert min(vz) >= -0.3 - 1e-9
+    at_ground = next(k for k, h in enumerate(z) if h <= 0.1)
+    assert -0.12 - 1e-9 <= vz[at_ground] < 0.0
+    # the velocity is the position's derivative and the acceleration the velocity's (up to the
+    # stop at the end, where the reference holds)
+    end = next(k for k, h in enumerate(z) if h <= 0.05 + 1e-12)
+    for k in range(1, end - 1):
+        assert (z[k + 1] - z[k - 1]) / (2 * dt) == pytest.approx(vz[k], abs=2e-3)
+        if abs(az[k + 1] - az[k - 1]) < 1e-9:  # away from the flare's step in acceleration
+            assert (vz[k + 1] - vz[k - 1]) / (2 * dt) == pytest.approx(az[k], abs=1e-2)
