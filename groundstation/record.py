@@ -257,8 +257,12 @@ class RecordWriter:
 
 
 def read_record(path: str | Path) -> FlightRecord:
-    """Read a record file (also one still being written, or cut short by a crash)."""
-    return parse_record(Path(path).read_bytes(), str(path))
+    """Read a record file (also one still being written, or cut short by a crash). Only a
+    regular file: a device such as /dev/zero would be read for ever (into all the memory)."""
+    p = Path(path)
+    if p.exists() and not p.is_file():
+        raise RecordFormatError(f"{path}: not a regular file (a folder, a device or a pipe)")
+    return parse_record(p.read_bytes(), str(path))
 
 
 def parse_record(data: bytes, path: str = "<bytes>") -> FlightRecord:

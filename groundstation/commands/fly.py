@@ -140,9 +140,7 @@ def _fly(args: argparse.Namespace, signals: StopSignals) -> int:
             raise UserError(f"--mavlink {exc}") from None
     record = record_path(args.record, cfg.telemetry.record, path, cfg.name)
     make_record_folder(record)
-    if record.is_dir():  # the telemetry process could not open it, mid-start-up
-        raise UserError(f"the flight record {record} is a folder; expected a file path "
-                        "(--record or telemetry.record)")
+    check_record_path(record)
     show = not args.quiet and not args.json
     console = Console(sys.stderr, status=lambda: session.loop.status if session.loop else "")
     session = FlightSession(cfg, params, mission, record_path=record,
@@ -205,6 +203,29 @@ def record_path(cli: str | None, configured: str, session_file: Path, session: s
         path = path.expanduser()
         return path if path.is_absolute() else session_file.parent / path
     return Path("flights") / f"{session}-{stamp}.fhr"
+
+
+def check_record_path(record: Path) -> None:
+    """The flight record and its events file can be written, before anything opens (the
+    telemetry process could not open them mid-start-up; /dev/full took all the memory when
+    the summary read it back). A ``UserError`` otherwise; nothing is left behind."""
+    from groundstation.cli import UserError
+
+    if record.is_dir():
+        raise UserError(f"the flight record {record} is a folder; expected a file path "
+                        "(--record or telemetry.record)")
+    if record.exists() and not record.is_file():
+        raise UserError(f"the flight record {record} is not a regular file (a device or a "
+                        "pipe); expected a file path (--record or telemetry.record)")
+    for path in (record, record.with_name(record.name + ".events.txt")):
+        existed = path.exists()
+        try:
+            path.open("ab").close()
+            if not existed:
+                path.unlink()
+        except OSError as exc:
+            raise UserError(f"cannot write the flight record's file {path}: "
+                            f"{exc.strerror or exc}") from None
 
 
 def make_record_folder(record: Path, what: str = "the record's") -> None:

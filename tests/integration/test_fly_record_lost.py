@@ -99,4 +99,14 @@ def test_that_bad_link_and_record_options_stop_fly_before_anything_opens(
     assert main(["fly", str(session), "--record", str(folder)]) == 2
     assert capsys.readouterr().err == (f"fasthex: the flight record {folder} is a folder; "
                                        "expected a file path (--record or telemetry.record)\n")
+    # a device (/dev/full filled all the memory when the summary read it back) and a place
+    # where no file can be made
+    assert main(["fly", str(session), "--record", "/dev/null"]) == 2
+    assert capsys.readouterr().err == (
+        "fasthex: the flight record /dev/null is not a regular file (a device or a pipe); "
+        "expected a file path (--record or telemetry.record)\n")
+    assert main(["fly", str(session), "--record", "/proc/x.fhr"]) == 2
+    assert capsys.readouterr().err == ("fasthex: cannot write the flight record's file "
+                                       "/proc/x.fhr: No such file or directory\n")
+    assert not list(folder.iterdir())  # the checks leave no file behind
     assert not multiprocessing.active_children()

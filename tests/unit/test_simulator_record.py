@@ -183,3 +183,11 @@ def test_that_packed_rows_are_the_bytes_numpy_writes(tmp_path: Path) -> None:
     with np.errstate(over="ignore"):
         assert got.tobytes() == np.array(rows, dtype=RECORD_DTYPE).tobytes()
     assert np.isposinf(got["pos_w_m"][-1][0]) and np.isneginf(got["pos_w_m"][-1][1])
+
+
+def test_that_only_a_regular_file_is_read_as_a_record(tmp_path: Path) -> None:
+    # a device is read for ever (/dev/zero: into all the memory); a folder is no record
+    for path in (Path("/dev/null"), tmp_path):
+        with pytest.raises(RecordFormatError) as err:
+            read_record(path)
+        assert str(err.value) == f"{path}: not a regular file (a folder, a device or a pipe)"
