@@ -83,6 +83,9 @@ class HealthSnapshot:
     #: the mission (its planned landing with it) is over and the estimate has stayed off the
     #: ground since: a planned landing that cannot end (the loop waits ENDED_ALOFT_S first)
     ended_aloft: bool = False
+    #: LANDING: the IMU reads the vehicle standing still at low thrust (IMU_LANDED_S), whatever
+    #: the estimate says: a touchdown the estimate did not see (frozen, drifting)
+    landed_imu: bool = False
 
 
 @dataclass(frozen=True)
@@ -214,6 +217,10 @@ class FlightStateMachine:
             self._land(t_s, "mission complete", here=False)
         elif s is FlightState.LANDING and h.on_ground:
             self._go(t_s, FlightState.DISARMED, "touchdown")
+        elif s is FlightState.LANDING and h.landed_imu:
+            z = h.pos_w_m[2]
+            self._fault(t_s, f"touchdown seen by the IMU only (the estimate at z = {z:.2f} m)")
+            self._go(t_s, FlightState.DISARMED, "touchdown (IMU: still at low thrust)")
         elif s is FlightState.LANDING and h.ended_aloft and not self._land_here:
             # mission files are checked to end on the ground: this is the last line of defence
             # (a hover at the mission's last reference would last until the battery runs out)

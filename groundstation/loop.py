@@ -94,6 +94,16 @@ TOUCHDOWN_CONFIRM_S = 0.4
 #: planned landing ends at the resting height; a vehicle still above it after this cannot be
 #: touching down by itself)
 ENDED_ALOFT_S = 1.0
+#: landing: the IMU's touchdown, independent of the estimate: the commanded body thrust under
+#: this fraction of the weight (the controller pushes down) while the IMU reads the ground's
+#: support (specific force within IMU_STILL_ACCEL_M_S2 of g, rates under IMU_STILL_RATE_RAD_S)
+#: for IMU_LANDED_S. Airborne, low thrust means falling (specific force well under g), so
+#: only a vehicle standing on something passes; the estimate's touchdown (TOUCHDOWN_CONFIRM_S)
+#: comes first in a landing it follows.
+IMU_LOW_THRUST_FRACTION = 0.6
+IMU_STILL_ACCEL_M_S2 = 1.5
+IMU_STILL_RATE_RAD_S = 0.2
+IMU_LANDED_S = 1.0
 #: session time past ``max_flight_s`` after which a landing that has not touched down is cut
 TIME_LIMIT_CUT_S = 120.0
 #: lockstep: wall time after which a sample counts as lost, and the slice to check the link.
@@ -215,6 +225,7 @@ class FlightLoop:
         #: the session ends)
         self.record_lost: Callable[[], str | None] | None = None
         self.period_ns = round(1e9 / options.imu_rate_hz)
+        self._low_thrust_n = IMU_LOW_THRUST_FRACTION * params.mass_kg * params.gravity_m_s2
         self.timer = LoopTimer(1.0 / options.imu_rate_hz)
         #: operator requests from other threads (signal handler, MAVLink): deque is atomic
         self.requests: collections.deque[Literal["arm", "land", "stop", "cut", "disarm"]] = \
@@ -258,6 +269,7 @@ class FlightLoop:
         servo_state = None
         ground_since_s: float | None = None
         aloft_since_s: float | None = None   # the mission over, the estimate off the ground
+        still_since_s: float | None = None   # LANDING: at low thrust, the IMU held still
         time_limit_told = 0  # 1: the session time limit landed the vehicle, 2: it cut
         record_lost_why: str | None = None  # the flight record lost: why (acted on once)
         record_lost_told = False
@@ -475,17 +487,27 @@ class FlightLoop:
                          and t_s - ground_since_s > TOUCHDOWN_CONFIRM_S)
             near_ground = self._near_ground(est_state)
             ground_since_s = (ground_since_s or t_s) if near_ground else None
+            # the IMU's own touchdown, whatever the estimate says (a frozen or drifting one
+            # never comes near the ground): at low thrust, held still (the ground carries it)
+            if sm.state is FlightState.LANDING and tick is not None and \
+                    force_cmd_b[2] < self._low_thrust_n and self._imu_still(imu):
+                still_since_s = t_s if still_since_s is None else still_since_s
+            else:
+                still_since_s = None
+            landed_imu = still_since_s is not None and t_s - still_since_s >= IMU_LANDED_S
             aloft_since_s = (aloft_since_s or t_s) if phase == "done" and not near_ground \
                 else None
+            mocap_consistent = self._mocap_consistent(t_s)
             h = self._health(0.0, link_ok, t_s - self._last_pose_t_s, estimator_ok,
                              servo_health,
                              battery_v, est_state, on_ground, phase, spinning,
                              lifted_off=lifted_off, takeoff_reached=at_height,
-                             mocap_consistent=self._mocap_consistent(t_s),
+                             mocap_consistent=mocap_consistent,
                              servo_detail=_servo_detail(servo_state)
                              if servo_health is ServoHealth.FAULT else "",
                              ended_aloft=aloft_since_s is not None
-                             and t_s - aloft_since_s >= ENDED_ALOFT_S)
+                             and t_s - aloft_since_s >= ENDED_ALOFT_S,
+                             landed_imu=landed_imu and sm.state is FlightState.LANDING)
             flying = sm.state in FLYING  # the extremes of this tick, added after the send
             directive = sm.update(t_s, h)
             # a failsafe in a planned landing stays LANDING but is a transition all the same
@@ -755,6 +777,16 @@ class FlightLoop:
             return "takeoff"
         return "mission" if tm < end else "land"
 
+    def _imu_still(self, imu: Any) -> bool:
+        """This IMU sample reads a vehicle at rest: its specific force is g (within
+        IMU_STILL_ACCEL_M_S2), its rates are small."""
+        ax, ay, az = imu.accel_m_s2
+        gx, gy, gz = imu.gyro_rad_s
+        g = self.params.gravity_m_s2
+        return (abs(math.sqrt(ax * ax + ay * ay + az * az) - g) < IMU_STILL_ACCEL_M_S2
+                and abs(gx) < IMU_STILL_RATE_RAD_S and abs(gy) < IMU_STILL_RATE_RAD_S
+                and abs(gz) < IMU_STILL_RATE_RAD_S)
+
     def _near_ground(self, est: VehicleState) -> bool:
         # height only: the contact's impacts make the estimated vertical speed jumpy, and a
         # bounce that leaves this band restarts the confirmation anyway
@@ -765,7 +797,7 @@ class FlightLoop:
                 phase: Literal["takeoff", "mission", "land", "done"], spinning: bool,
                 lifted_off: bool = True, takeoff_reached: bool = True,
                 mocap_consistent: bool = True, servo_detail: str = "",
-                ended_aloft: bool = False) -> HealthSnapshot:
+                ended_aloft: bool = False, landed_imu: bool = False) -> HealthSnapshot:
         q = est.q_wb
         r33 = 1.0 - 2.0 * (q[1] * q[1] + q[2] * q[2])
         return HealthSnapshot(
@@ -775,7 +807,7 @@ class FlightLoop:
             on_ground=on_ground, mission_phase=phase, motors_spinning=spinning,
             lifted_off=lifted_off, takeoff_reached=takeoff_reached,
             mocap_consistent=mocap_consistent, servo_detail=servo_detail,
-            ended_aloft=ended_aloft,
+            ended_aloft=ended_aloft, landed_imu=landed_imu,
         )
 
     def _mocap_consistent(self, t_s: float) -> bool:

@@ -150,3 +150,29 @@ def test_that_a_landing_on_the_estimate_touches_down_slowly_and_stays_down(
     contact = last_aloft + int(np.argmax(z[last_aloft:] <= GROUND_Z_M + 0.001))
     assert -0.15 < vz[contact - 1] < -0.08
     assert np.max(z[contact:]) - z[contact] < 0.001
+
+
+def test_that_a_landing_on_an_estimate_stuck_in_the_air_ends_on_the_imus_touchdown(
+        tmp_path: Path) -> None:
+    # Fixture: MoCap frozen at 5 s (it keeps streaming the pose of then, with its noise): the
+    # estimate stays near it, MoCap and IMU disagree, the failsafe lands on that estimate,
+    # which never comes near the ground. A 30 s limit bounds the flight should the IMU's
+    # touchdown not end it (it idled on the ground until the one-hour limit)
+    cfg, params, mission = short_session(tmp_path)
+    cfg = replace(cfg, backend=replace(cfg.backend, faults=("mocap-freeze@5",)),
+                  safety=replace(cfg.safety, session_time_limit_s=30.0))
+    # Test
+    outcome = FlightSession(cfg, params, mission, record_path=tmp_path / "stuck.fhr",
+                            echo_events=False).run()
+    # Assert: disarmed by the IMU (still at low thrust for 1 s), on the ground, soon after
+    trs = _transitions(outcome)
+    t_land, _, _, why = next(tr for tr in trs if tr[2] is FlightState.LANDING)
+    assert why.startswith("failsafe: MoCap and IMU disagree")
+    t_end, frm, to, why = trs[-1]
+    assert (frm, to, why) == (FlightState.LANDING, FlightState.DISARMED,
+                              "touchdown (IMU: still at low thrust)")
+    assert t_end - t_land < 6.0
+    assert any("touchdown seen by the IMU only" in f for f in outcome.result.faults)
+    rec = read_record(tmp_path / "stuck.fhr").rows
+    assert rec["pos_w_m"][-1][2] == pytest.approx(GROUND_Z_M, abs=0.01)  # truth: on its gear
+    assert rec["est_pos_w_m"][-1][2] > GROUND_Z_M + 0.1  # the estimate: still up
