@@ -368,13 +368,38 @@ def _restore_log_levels(levels: dict[str, int]) -> None:
         logging.getLogger(name).setLevel(level)
 
 
+def check_scheduler(scheduler: str) -> str:
+    """``scheduler`` if it is one of the documented forms, ``local`` or ``tcp://HOST:PORT``
+    (port 1 .. 65535); a one-line ``ValueError`` saying what is wrong otherwise (Dask would fail
+    with a traceback, or wait its connect timeout for a port that cannot exist)."""
+    from urllib.parse import urlsplit
+
+    if scheduler == "local":
+        return scheduler
+    why = ""
+    try:
+        parts = urlsplit(scheduler)
+        port = parts.port
+        ok = (parts.scheme == "tcp" and bool(parts.hostname) and port is not None
+              and not (parts.path or parts.query or parts.fragment))
+        if ok and port == 0:
+            ok, why = False, "; the port must be 1 .. 65535"
+    except ValueError as exc:  # a port out of range or not a number, a bad IPv6 host
+        ok = False
+        why = ("; the port must be 1 .. 65535" if str(exc).startswith("Port")
+               else f" ({exc})")
+    if not ok:
+        raise ValueError(f"--scheduler {scheduler!r}: expected 'local' or tcp://HOST:PORT{why}")
+    return scheduler
+
+
 def make_runner(workers: int | None, scheduler: str | None,
                 fn: RunFunction = execute_run) -> Runner:
     """The runner for ``--workers`` / ``--scheduler`` (module docstring). ``fn`` flies one
     run (tests put a run that kills its worker in its place)."""
     n = workers if workers is not None else (os.cpu_count() or 1)
-    if scheduler:
-        return DaskRunner(scheduler, n, fn)
+    if scheduler is not None:
+        return DaskRunner(check_scheduler(scheduler), n, fn)
     if n == 1:
         return SerialRunner(fn)
     return ProcessPoolRunner(n, fn)

@@ -40,7 +40,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="worker processes (default: every core; 1 flies in this process)")
     parser.add_argument("--scheduler", default=None, metavar="URI",
                         help="run on Dask: 'local' starts a LocalCluster of --workers "
-                        "processes; tcp://HOST:8786 uses that scheduler's cluster")
+                        "processes; tcp://HOST:PORT (e.g. tcp://HOST:8786) uses that "
+                        "scheduler's cluster; anything else is refused")
     parser.add_argument("--retry-errors", action="store_true",
                         help="fly again the runs whose row is an error (a crash is a result "
                         "and is kept)")
@@ -75,12 +76,18 @@ def _sweep(args: argparse.Namespace) -> int:
         Progress,
         ResultsTable,
         Runner,
+        check_scheduler,
         make_runner,
         sweep,
     )
 
     if args.workers is not None and args.workers < 1:
         raise UserError(f"--workers must be at least 1, got {args.workers}")
+    if args.scheduler is not None:
+        try:
+            check_scheduler(args.scheduler)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
     if args.flush_s is not None and not (0.0 <= args.flush_s <= 3600.0):
         raise UserError(f"--flush-s must be between 0 and 3600 seconds, got {args.flush_s}")
     campaign = load_campaign(find_config("campaigns", args.campaign))

@@ -392,6 +392,29 @@ def test_that_an_option_out_of_range_is_one_line_and_exit_2(
     assert capsys.readouterr().err == f"fasthex: {error}\n"
 
 
+@pytest.mark.parametrize(("value", "why"), [
+    ("garbage", ""),  # was a 30-line Dask traceback ('missing port number'), exit 1
+    ("tcp://:99999", "; the port must be 1 .. 65535"),  # was the 20 s connect timeout
+    ("tcp://host:0", "; the port must be 1 .. 65535"),
+    ("", ""),  # was a silent run on the local pool
+    ("tls://host:8786", ""),
+])
+def test_that_a_scheduler_not_local_or_tcp_host_port_is_one_line_before_anything(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], value: str, why: str) -> None:
+    path = write_campaign(tmp_path)
+    # --dry-run: refused before the campaign's runs are even listed
+    assert main(["sweep", str(path), "--scheduler", value, "--dry-run"]) == 2
+    assert capsys.readouterr() == ("", f"fasthex: --scheduler {value!r}: expected 'local' or "
+                                       f"tcp://HOST:PORT{why}\n")
+
+
+def test_that_the_documented_scheduler_forms_are_accepted() -> None:
+    from groundstation.sweep import check_scheduler
+
+    for value in ("local", "tcp://10.0.0.5:8786", "tcp://sched.lab:1", "tcp://[::1]:65535"):
+        assert check_scheduler(value) == value
+
+
 def test_that_sweep_report_without_a_table_says_what_it_needs(
         capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["sweep", "report"]) == 2
