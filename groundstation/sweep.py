@@ -7,6 +7,8 @@
   (forked from a ``forkserver`` that imported the flight code), one run at a time each. A
   worker that dies (a segfault, the OOM killer) costs exactly the run it was flying: that
   run's row says so, a fresh worker takes its place;
+- ``fasthex sweep`` caps the local workers (pool or ``local``) at the runs left to fly and
+  :data:`MAX_WORKERS_PER_CPU` per core (:func:`local_workers`);
 - ``scheduler`` ``local``: a Dask ``LocalCluster`` of ``workers`` single-threaded processes;
   ``tcp://HOST:8786``: the Dask distributed cluster behind that scheduler. Both are the same
   code (:class:`DaskRunner` on a ``distributed.Client``); a worker that dies is retried by Dask
@@ -393,14 +395,37 @@ def check_scheduler(scheduler: str) -> str:
     return scheduler
 
 
+#: the most local worker processes per core a sweep starts (runs are CPU-bound: more only
+#: share the cores, in memory and start-up time)
+MAX_WORKERS_PER_CPU = 4
+
+
+def local_workers(requested: int | None, runs_left: int) -> tuple[int, str]:
+    """Worker processes for a local sweep (the pool or ``--scheduler local``) and a note for
+    the user if ``--workers`` (``requested``) was capped: at most one per run left to fly
+    (at least 1) and :data:`MAX_WORKERS_PER_CPU` per core. The default (every core) is capped
+    at the runs left without a note."""
+    cpus = os.cpu_count() or 1
+    n = requested if requested is not None else cpus
+    limit, why = max(runs_left, 1), f"the {runs_left} run(s) to fly"
+    if MAX_WORKERS_PER_CPU * cpus < limit:
+        limit, why = MAX_WORKERS_PER_CPU * cpus, f"{MAX_WORKERS_PER_CPU} per core on {cpus} core(s)"
+    if n <= limit:
+        return n, ""
+    return limit, (f" (--workers {requested} capped at {why})" if requested is not None
+                   else "")
+
+
 def make_runner(workers: int | None, scheduler: str | None,
-                fn: RunFunction = execute_run) -> Runner:
+                fn: RunFunction = execute_run, *, in_process: bool | None = None) -> Runner:
     """The runner for ``--workers`` / ``--scheduler`` (module docstring). ``fn`` flies one
-    run (tests put a run that kills its worker in its place)."""
+    run (tests put a run that kills its worker in its place). ``in_process`` (default: one
+    worker) flies in this process; else one worker is a pool of one, which a crash cannot end
+    (``--workers 8`` capped at the one run left to fly)."""
     n = workers if workers is not None else (os.cpu_count() or 1)
     if scheduler is not None:
         return DaskRunner(check_scheduler(scheduler), n, fn)
-    if n == 1:
+    if n == 1 if in_process is None else in_process:
         return SerialRunner(fn)
     return ProcessPoolRunner(n, fn)
 

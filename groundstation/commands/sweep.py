@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import sys
 from pathlib import Path
 
@@ -37,7 +38,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "name); with 'report': the directory for the plots (default "
                         "TABLE-report/)")
     parser.add_argument("--workers", type=int, default=None, metavar="N",
-                        help="worker processes (default: every core; 1 flies in this process)")
+                        help="worker processes (default: every core; 1 flies in this "
+                        "process); at most one per run left to fly and 4 per core")
     parser.add_argument("--scheduler", default=None, metavar="URI",
                         help="run on Dask: 'local' starts a LocalCluster of --workers "
                         "processes; tcp://HOST:PORT (e.g. tcp://HOST:8786) uses that "
@@ -77,6 +79,7 @@ def _sweep(args: argparse.Namespace) -> int:
         ResultsTable,
         Runner,
         check_scheduler,
+        local_workers,
         make_runner,
         sweep,
     )
@@ -121,12 +124,17 @@ def _sweep(args: argparse.Namespace) -> int:
                   f"seed={r.seed} {point}" + (f"  CONFIG ERROR: {r.config_error}"
                                               if r.config_error else ""))
         return 0
+    workers, capped = args.workers, ""
+    if args.scheduler in (None, "local"):  # a scheduler's cluster has the workers it has
+        workers, capped = local_workers(args.workers, todo)
     runner: Runner | None = None
     with stop_signals_interrupt():  # SIGTERM, SIGHUP: as Ctrl-C; a repeat is the same stop
         try:
             with stop_signals_blocked():  # worker processes start with the stop signals held
-                runner = make_runner(args.workers, args.scheduler)
-            print(f"running on {runner.description}", file=sys.stderr)
+                # in this process only if asked for (--workers 1, or one core), not capped to it
+                runner = make_runner(workers, args.scheduler, in_process=(
+                    (args.workers or os.cpu_count() or 1) == 1))
+            print(f"running on {runner.description}{capped}", file=sys.stderr)
             progress = Progress(todo, label=campaign.name)
             flown, skipped = sweep(runs, table, runner, retry_errors=args.retry_errors,
                                    progress=progress)

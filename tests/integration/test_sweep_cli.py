@@ -35,6 +35,7 @@ import pyarrow.parquet as pq
 import pytest
 from terminal_support import screen
 
+from groundstation.campaign import load_campaign
 from groundstation.cli import main
 from groundstation.sweep import TIMING_COLUMNS, ResultsTable, SerialRunner, sweep
 
@@ -413,6 +414,46 @@ def test_that_the_documented_scheduler_forms_are_accepted() -> None:
 
     for value in ("local", "tcp://10.0.0.5:8786", "tcp://sched.lab:1", "tcp://[::1]:65535"):
         assert check_scheduler(value) == value
+
+
+@pytest.mark.parametrize(("cpus", "workers", "started", "note"), [
+    (16, "1000", 8, " (--workers 1000 capped at the 8 run(s) to fly)"),
+    (1, "1000", 4, " (--workers 1000 capped at 4 per core on 1 core(s))"),
+    (16, "3", 3, ""),
+    (16, None, 8, ""),  # the default, every core, is capped at the runs without a note
+    (16, "1000", 1, " (--workers 1000 capped at the 1 run(s) to fly)"),
+])
+def test_that_workers_are_capped_at_the_runs_to_fly_and_per_core(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch,
+        cpus: int, workers: str | None, started: int, note: str) -> None:
+    # Fixture: an 8-run campaign (7 already flown for the last case); the runner is
+    # recorded, the runs are not flown
+    import groundstation.sweep as sweep_mod
+
+    path = write_campaign(tmp_path)
+    if started == 1:
+        table = ResultsTable(tmp_path / "t.parquet", {"campaign": "hop-cli"})
+        for run in list(load_campaign(path).runs())[1:]:
+            table.add(sweep_mod.died_row(run, "flown before"))
+        table.consolidate()
+    asked: list[int | None] = []
+
+    def fake_runner(n: int | None, scheduler: str | None, *,
+                    in_process: bool | None = None) -> SerialRunner:
+        asked.append(n)
+        assert not in_process  # capped to one, still a worker process
+        runner = SerialRunner(lambda spec: sweep_mod.died_row(spec, "not flown"))
+        runner.description = f"{n} local worker processes"
+        return runner
+
+    monkeypatch.setattr(sweep_mod, "make_runner", fake_runner)
+    monkeypatch.setattr(os, "cpu_count", lambda: cpus)
+    # Test (--workers 1000 used to start 1000 processes for 8 runs)
+    assert main(["sweep", str(path), "--out", str(tmp_path / "t.parquet"),
+                 *(["--workers", workers] if workers else [])]) == 0
+    # Assert
+    assert asked == [started]
+    assert f"running on {started} local worker processes{note}\n" in capsys.readouterr().err
 
 
 def test_that_sweep_report_without_a_table_says_what_it_needs(
