@@ -507,11 +507,33 @@ def read_metadata(path: Path) -> dict[str, Any]:
     return {} if raw is None else dict(json.loads(raw))
 
 
+def write_durably(table: pa.Table, path: Path) -> None:
+    """Write ``table`` to ``path`` through ``PATH.tmp``, fsync'ed before the atomic rename and
+    the folder after it: a power loss leaves the old file or the whole new one, never a
+    truncated one under the final name."""
+    import pyarrow.parquet as pq
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        pq.write_table(table, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 class ResultsTable:
-    """The sweep's Parquet table and its journal of parts (module docstring)."""
+    """The sweep's Parquet table and its journal of parts (module docstring).
+
+    A part that cannot be read (cut short by a crash of the machine before part files were
+    fsync'ed, or by a disk) is renamed ``PART.corrupt`` (with ``set_aside``; else only skipped)
+    and listed in :attr:`unreadable`: its runs are not in the table, so they fly again."""
 
     def __init__(self, path: Path, meta: dict[str, Any], *,
-                 flush_interval_s: float = FLUSH_INTERVAL_S) -> None:
+                 flush_interval_s: float = FLUSH_INTERVAL_S, set_aside: bool = True) -> None:
         if not flush_interval_s >= 0.0:  # also refuses NaN
             raise ValueError(f"flush interval must be >= 0 s, got {flush_interval_s}")
         self.path = path
@@ -522,12 +544,21 @@ class ResultsTable:
         self._last_flush = time.monotonic()
         self._part = 0
         self.rows: dict[str, dict[str, Any]] = {}
+        #: the unreadable parts: (their path now, why)
+        self.unreadable: list[tuple[Path, str]] = []
         if path.exists():
             for row in read_rows(path):
                 self.rows[str(row["run_id"])] = row
         if self.parts_dir.is_dir():
             for part in sorted(self.parts_dir.glob("part-*.parquet")):
-                for row in read_rows(part):
+                try:
+                    rows = read_rows(part)
+                except (OSError, ValueError) as exc:  # pyarrow's ArrowInvalid: a ValueError
+                    if set_aside:
+                        part = part.rename(part.with_name(part.name + ".corrupt"))
+                    self.unreadable.append((part, str(exc)))
+                    continue
+                for row in rows:
                     self.rows[str(row["run_id"])] = row
 
     def done_ids(self, *, retry_errors: bool = False) -> set[str]:
@@ -541,33 +572,29 @@ class ResultsTable:
             self.flush()
 
     def flush(self) -> None:
-        """Write the buffered rows as one part file (atomically)."""
-        import pyarrow.parquet as pq
+        """Write the buffered rows as one part file (atomically, fsync'ed)."""
         self._last_flush = time.monotonic()
         if not self._buffer:
             return
         self.parts_dir.mkdir(parents=True, exist_ok=True)
         name = f"part-{time.time_ns():020d}-{os.getpid()}-{self._part:05d}.parquet"
         self._part += 1
-        tmp = self.parts_dir / (name + ".tmp")
-        pq.write_table(rows_to_table(self._buffer, self.meta), tmp)
-        os.replace(tmp, self.parts_dir / name)
+        write_durably(rows_to_table(self._buffer, self.meta), self.parts_dir / name)
         self._buffer = []
 
     def consolidate(self) -> None:
         """Rewrite the table from every row known (table + parts), ordered by run index, then
-        drop the parts. Atomic: the old table stays whole until the new one replaces it."""
-        import pyarrow.parquet as pq
+        drop the parts (a ``.corrupt`` one stays, for a look). Atomic: the old table stays
+        whole until the new one replaces it."""
         self.flush()
         rows = sorted(self.rows.values(), key=lambda r: (r.get("run_index") or 0,
                                                          str(r["run_id"])))
-        tmp = self.path.with_name(self.path.name + ".tmp")
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        pq.write_table(rows_to_table(rows, self.meta), tmp)
-        os.replace(tmp, self.path)
+        write_durably(rows_to_table(rows, self.meta), self.path)
         if self.parts_dir.is_dir():
-            for part in self.parts_dir.glob("part-*.parquet*"):
-                part.unlink()
+            for pattern in ("part-*.parquet", "part-*.parquet.tmp"):
+                for part in self.parts_dir.glob(pattern):
+                    part.unlink()
             with contextlib.suppress(OSError):
                 self.parts_dir.rmdir()
 

@@ -100,9 +100,14 @@ def _sweep(args: argparse.Namespace) -> int:
             "parameters": campaign.parameter_names(), "fasthex_version": version()}
     try:
         table = ResultsTable(table_path, meta, flush_interval_s=(
-            FLUSH_INTERVAL_S if args.flush_s is None else args.flush_s))
-    except Exception as exc:  # not a Parquet file, unreadable parts
+            FLUSH_INTERVAL_S if args.flush_s is None else args.flush_s),
+            set_aside=not args.dry_run)
+    except Exception as exc:  # not a Parquet file
         raise UserError(f"{table_path}: cannot read the results table ({exc})") from None
+    for part, why in table.unreadable:  # cut short by a crash: its runs fly again
+        print(f"note: an unreadable part of the results table {part} ({why}); "
+              + ("a sweep sets it aside and flies its runs again" if args.dry_run
+                 else "set aside, its runs fly again"), file=sys.stderr)
     done = table.done_ids(retry_errors=args.retry_errors)
     ids = {r.run_id for r in runs}
     foreign = sum(1 for rid in table.rows if rid not in ids)
