@@ -17,6 +17,9 @@ union of dataclasses told apart by a ``Literal`` field they share (e.g. ``kind: 
 
 YAML 1.1 trap: PyYAML reads ``4e-6`` (no dot) as a *string*. A plain (unquoted) scalar that
 Python's ``float()`` accepts is taken as a number for float fields; a quoted one is not.
+Likewise a bare ``off``/``on``/``yes``/``no`` is read as a boolean: for a ``Literal`` of strings
+the word as written is taken (``rerun: off`` is ``'off'``) if it is one of the choices; another
+boolean (``rerun: true``) is refused with a hint to quote the value.
 
 Before the YAML parser sees a file, the reader refuses what no config file needs and what could
 make the parser itself fail or blow up, each as ``FILE:LINE: expectation`` (no key): files over
@@ -304,6 +307,14 @@ class _Walker:
         if origin is Literal:
             value = self.scalar(node, key)
             choices = get_args(tp)
+            if isinstance(value, bool) and isinstance(choices[0], str):
+                # YAML 1.1 reads a bare off/on/yes/no as a boolean: the word written is meant
+                written = str(node.value)
+                if written.lower() in choices:
+                    return written.lower()
+                raise self.error(node, key, f"expected one of {', '.join(map(repr, choices))}; "
+                                 f"got {written} (YAML reads a bare {written} as {value!r}: "
+                                 "write the value in quotes)")
             if value not in choices or isinstance(value, bool) != isinstance(choices[0], bool):
                 raise self.error(node, key, f"expected one of {', '.join(map(repr, choices))}; "
                                  f"got {value!r}")

@@ -7,6 +7,8 @@
   (forked from a ``forkserver`` that imported the flight code), one run at a time each. A
   worker that dies (a segfault, the OOM killer) costs exactly the run it was flying: that
   run's row says so, a fresh worker takes its place;
+- ``fasthex sweep`` caps the local workers (pool or ``local``) at the runs left to fly and
+  :data:`MAX_WORKERS_PER_CPU` per core (:func:`local_workers`);
 - ``scheduler`` ``local``: a Dask ``LocalCluster`` of ``workers`` single-threaded processes;
   ``tcp://HOST:8786``: the Dask distributed cluster behind that scheduler. Both are the same
   code (:class:`DaskRunner` on a ``distributed.Client``); a worker that dies is retried by Dask
@@ -368,14 +370,62 @@ def _restore_log_levels(levels: dict[str, int]) -> None:
         logging.getLogger(name).setLevel(level)
 
 
+def check_scheduler(scheduler: str) -> str:
+    """``scheduler`` if it is one of the documented forms, ``local`` or ``tcp://HOST:PORT``
+    (port 1 .. 65535); a one-line ``ValueError`` saying what is wrong otherwise (Dask would fail
+    with a traceback, or wait its connect timeout for a port that cannot exist)."""
+    from urllib.parse import urlsplit
+
+    if scheduler == "local":
+        return scheduler
+    why = ""
+    try:
+        parts = urlsplit(scheduler)
+        port = parts.port
+        ok = (parts.scheme == "tcp" and bool(parts.hostname) and port is not None
+              and not (parts.path or parts.query or parts.fragment))
+        if ok and port == 0:
+            ok, why = False, "; the port must be 1 .. 65535"
+    except ValueError as exc:  # a port out of range or not a number, a bad IPv6 host
+        ok = False
+        why = ("; the port must be 1 .. 65535" if str(exc).startswith("Port")
+               else f" ({exc})")
+    if not ok:
+        raise ValueError(f"--scheduler {scheduler!r}: expected 'local' or tcp://HOST:PORT{why}")
+    return scheduler
+
+
+#: the most local worker processes per core a sweep starts (runs are CPU-bound: more only
+#: share the cores, in memory and start-up time)
+MAX_WORKERS_PER_CPU = 4
+
+
+def local_workers(requested: int | None, runs_left: int) -> tuple[int, str]:
+    """Worker processes for a local sweep (the pool or ``--scheduler local``) and a note for
+    the user if ``--workers`` (``requested``) was capped: at most one per run left to fly
+    (at least 1) and :data:`MAX_WORKERS_PER_CPU` per core. The default (every core) is capped
+    at the runs left without a note."""
+    cpus = os.cpu_count() or 1
+    n = requested if requested is not None else cpus
+    limit, why = max(runs_left, 1), f"the {runs_left} run(s) to fly"
+    if MAX_WORKERS_PER_CPU * cpus < limit:
+        limit, why = MAX_WORKERS_PER_CPU * cpus, f"{MAX_WORKERS_PER_CPU} per core on {cpus} core(s)"
+    if n <= limit:
+        return n, ""
+    return limit, (f" (--workers {requested} capped at {why})" if requested is not None
+                   else "")
+
+
 def make_runner(workers: int | None, scheduler: str | None,
-                fn: RunFunction = execute_run) -> Runner:
+                fn: RunFunction = execute_run, *, in_process: bool | None = None) -> Runner:
     """The runner for ``--workers`` / ``--scheduler`` (module docstring). ``fn`` flies one
-    run (tests put a run that kills its worker in its place)."""
+    run (tests put a run that kills its worker in its place). ``in_process`` (default: one
+    worker) flies in this process; else one worker is a pool of one, which a crash cannot end
+    (``--workers 8`` capped at the one run left to fly)."""
     n = workers if workers is not None else (os.cpu_count() or 1)
-    if scheduler:
-        return DaskRunner(scheduler, n, fn)
-    if n == 1:
+    if scheduler is not None:
+        return DaskRunner(check_scheduler(scheduler), n, fn)
+    if n == 1 if in_process is None else in_process:
         return SerialRunner(fn)
     return ProcessPoolRunner(n, fn)
 
@@ -457,11 +507,33 @@ def read_metadata(path: Path) -> dict[str, Any]:
     return {} if raw is None else dict(json.loads(raw))
 
 
+def write_durably(table: pa.Table, path: Path) -> None:
+    """Write ``table`` to ``path`` through ``PATH.tmp``, fsync'ed before the atomic rename and
+    the folder after it: a power loss leaves the old file or the whole new one, never a
+    truncated one under the final name."""
+    import pyarrow.parquet as pq
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        pq.write_table(table, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 class ResultsTable:
-    """The sweep's Parquet table and its journal of parts (module docstring)."""
+    """The sweep's Parquet table and its journal of parts (module docstring).
+
+    A part that cannot be read (cut short by a crash of the machine before part files were
+    fsync'ed, or by a disk) is renamed ``PART.corrupt`` (with ``set_aside``; else only skipped)
+    and listed in :attr:`unreadable`: its runs are not in the table, so they fly again."""
 
     def __init__(self, path: Path, meta: dict[str, Any], *,
-                 flush_interval_s: float = FLUSH_INTERVAL_S) -> None:
+                 flush_interval_s: float = FLUSH_INTERVAL_S, set_aside: bool = True) -> None:
         if not flush_interval_s >= 0.0:  # also refuses NaN
             raise ValueError(f"flush interval must be >= 0 s, got {flush_interval_s}")
         self.path = path
@@ -472,12 +544,21 @@ class ResultsTable:
         self._last_flush = time.monotonic()
         self._part = 0
         self.rows: dict[str, dict[str, Any]] = {}
+        #: the unreadable parts: (their path now, why)
+        self.unreadable: list[tuple[Path, str]] = []
         if path.exists():
             for row in read_rows(path):
                 self.rows[str(row["run_id"])] = row
         if self.parts_dir.is_dir():
             for part in sorted(self.parts_dir.glob("part-*.parquet")):
-                for row in read_rows(part):
+                try:
+                    rows = read_rows(part)
+                except (OSError, ValueError) as exc:  # pyarrow's ArrowInvalid: a ValueError
+                    if set_aside:
+                        part = part.rename(part.with_name(part.name + ".corrupt"))
+                    self.unreadable.append((part, str(exc)))
+                    continue
+                for row in rows:
                     self.rows[str(row["run_id"])] = row
 
     def done_ids(self, *, retry_errors: bool = False) -> set[str]:
@@ -491,33 +572,29 @@ class ResultsTable:
             self.flush()
 
     def flush(self) -> None:
-        """Write the buffered rows as one part file (atomically)."""
-        import pyarrow.parquet as pq
+        """Write the buffered rows as one part file (atomically, fsync'ed)."""
         self._last_flush = time.monotonic()
         if not self._buffer:
             return
         self.parts_dir.mkdir(parents=True, exist_ok=True)
         name = f"part-{time.time_ns():020d}-{os.getpid()}-{self._part:05d}.parquet"
         self._part += 1
-        tmp = self.parts_dir / (name + ".tmp")
-        pq.write_table(rows_to_table(self._buffer, self.meta), tmp)
-        os.replace(tmp, self.parts_dir / name)
+        write_durably(rows_to_table(self._buffer, self.meta), self.parts_dir / name)
         self._buffer = []
 
     def consolidate(self) -> None:
         """Rewrite the table from every row known (table + parts), ordered by run index, then
-        drop the parts. Atomic: the old table stays whole until the new one replaces it."""
-        import pyarrow.parquet as pq
+        drop the parts (a ``.corrupt`` one stays, for a look). Atomic: the old table stays
+        whole until the new one replaces it."""
         self.flush()
         rows = sorted(self.rows.values(), key=lambda r: (r.get("run_index") or 0,
                                                          str(r["run_id"])))
-        tmp = self.path.with_name(self.path.name + ".tmp")
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        pq.write_table(rows_to_table(rows, self.meta), tmp)
-        os.replace(tmp, self.path)
+        write_durably(rows_to_table(rows, self.meta), self.path)
         if self.parts_dir.is_dir():
-            for part in self.parts_dir.glob("part-*.parquet*"):
-                part.unlink()
+            for pattern in ("part-*.parquet", "part-*.parquet.tmp"):
+                for part in self.parts_dir.glob(pattern):
+                    part.unlink()
             with contextlib.suppress(OSError):
                 self.parts_dir.rmdir()
 

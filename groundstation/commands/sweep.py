@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import sys
 from pathlib import Path
 
@@ -37,10 +38,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "name); with 'report': the directory for the plots (default "
                         "TABLE-report/)")
     parser.add_argument("--workers", type=int, default=None, metavar="N",
-                        help="worker processes (default: every core; 1 flies in this process)")
+                        help="worker processes (default: every core; 1 flies in this "
+                        "process); at most one per run left to fly and 4 per core")
     parser.add_argument("--scheduler", default=None, metavar="URI",
                         help="run on Dask: 'local' starts a LocalCluster of --workers "
-                        "processes; tcp://HOST:8786 uses that scheduler's cluster")
+                        "processes; tcp://HOST:PORT (e.g. tcp://HOST:8786) uses that "
+                        "scheduler's cluster; anything else is refused")
     parser.add_argument("--retry-errors", action="store_true",
                         help="fly again the runs whose row is an error (a crash is a result "
                         "and is kept)")
@@ -75,12 +78,19 @@ def _sweep(args: argparse.Namespace) -> int:
         Progress,
         ResultsTable,
         Runner,
+        check_scheduler,
+        local_workers,
         make_runner,
         sweep,
     )
 
     if args.workers is not None and args.workers < 1:
         raise UserError(f"--workers must be at least 1, got {args.workers}")
+    if args.scheduler is not None:
+        try:
+            check_scheduler(args.scheduler)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
     if args.flush_s is not None and not (0.0 <= args.flush_s <= 3600.0):
         raise UserError(f"--flush-s must be between 0 and 3600 seconds, got {args.flush_s}")
     campaign = load_campaign(find_config("campaigns", args.campaign))
@@ -90,9 +100,14 @@ def _sweep(args: argparse.Namespace) -> int:
             "parameters": campaign.parameter_names(), "fasthex_version": version()}
     try:
         table = ResultsTable(table_path, meta, flush_interval_s=(
-            FLUSH_INTERVAL_S if args.flush_s is None else args.flush_s))
-    except Exception as exc:  # not a Parquet file, unreadable parts
+            FLUSH_INTERVAL_S if args.flush_s is None else args.flush_s),
+            set_aside=not args.dry_run)
+    except Exception as exc:  # not a Parquet file
         raise UserError(f"{table_path}: cannot read the results table ({exc})") from None
+    for part, why in table.unreadable:  # cut short by a crash: its runs fly again
+        print(f"note: an unreadable part of the results table {part} ({why}); "
+              + ("a sweep sets it aside and flies its runs again" if args.dry_run
+                 else "set aside, its runs fly again"), file=sys.stderr)
     done = table.done_ids(retry_errors=args.retry_errors)
     ids = {r.run_id for r in runs}
     foreign = sum(1 for rid in table.rows if rid not in ids)
@@ -114,12 +129,17 @@ def _sweep(args: argparse.Namespace) -> int:
                   f"seed={r.seed} {point}" + (f"  CONFIG ERROR: {r.config_error}"
                                               if r.config_error else ""))
         return 0
+    workers, capped = args.workers, ""
+    if args.scheduler in (None, "local"):  # a scheduler's cluster has the workers it has
+        workers, capped = local_workers(args.workers, todo)
     runner: Runner | None = None
     with stop_signals_interrupt():  # SIGTERM, SIGHUP: as Ctrl-C; a repeat is the same stop
         try:
             with stop_signals_blocked():  # worker processes start with the stop signals held
-                runner = make_runner(args.workers, args.scheduler)
-            print(f"running on {runner.description}", file=sys.stderr)
+                # in this process only if asked for (--workers 1, or one core), not capped to it
+                runner = make_runner(workers, args.scheduler, in_process=(
+                    (args.workers or os.cpu_count() or 1) == 1))
+            print(f"running on {runner.description}{capped}", file=sys.stderr)
             progress = Progress(todo, label=campaign.name)
             flown, skipped = sweep(runs, table, runner, retry_errors=args.retry_errors,
                                    progress=progress)

@@ -27,7 +27,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=None, metavar="N",
                         help="worker processes (default: every core)")
     parser.add_argument("--scheduler", default=None, metavar="URI",
-                        help="Dask: 'local' (LocalCluster) or tcp://HOST:8786")
+                        help="Dask: 'local' (LocalCluster) or tcp://HOST:PORT (e.g. "
+                        "tcp://HOST:8786); anything else is refused")
     parser.add_argument("--out", default=None, metavar="FILE",
                         help="tuned vehicle file (default VEHICLE-CAMPAIGN.yaml); the report "
                         "and the trials table are written beside it")
@@ -45,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     from groundstation.campaign import load_campaign
     from groundstation.cli import UserError
     from groundstation.signals import stop_signals_blocked, stop_signals_interrupt
-    from groundstation.sweep import make_runner, rows_to_table
+    from groundstation.sweep import check_scheduler, make_runner, rows_to_table
     from groundstation.tune import (
         best_trial,
         report_markdown,
@@ -59,6 +60,11 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--trials must be at least 1, got {args.trials}")
     if args.workers is not None and args.workers < 1:
         raise UserError(f"--workers must be at least 1, got {args.workers}")
+    if args.scheduler is not None:
+        try:
+            check_scheduler(args.scheduler)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
     campaign = load_campaign(find_config("campaigns", args.campaign))
     if campaign.spec.tune is None:
         raise UserError(f"{campaign.path}: no tune: section; fasthex tune needs the gains to "

@@ -35,8 +35,9 @@ import pyarrow.parquet as pq
 import pytest
 from terminal_support import screen
 
+from groundstation.campaign import load_campaign
 from groundstation.cli import main
-from groundstation.sweep import TIMING_COLUMNS, ResultsTable, SerialRunner, sweep
+from groundstation.sweep import TIMING_COLUMNS, ResultsTable, SerialRunner, died_row, sweep
 
 HOP = """\
 schema: fasthex.mission
@@ -390,6 +391,147 @@ def test_that_an_option_out_of_range_is_one_line_and_exit_2(
     path = write_campaign(tmp_path)
     assert main(["sweep", str(path), option, value]) == 2
     assert capsys.readouterr().err == f"fasthex: {error}\n"
+
+
+@pytest.mark.parametrize(("value", "why"), [
+    ("garbage", ""),  # was a 30-line Dask traceback ('missing port number'), exit 1
+    ("tcp://:99999", "; the port must be 1 .. 65535"),  # was the 20 s connect timeout
+    ("tcp://host:0", "; the port must be 1 .. 65535"),
+    ("", ""),  # was a silent run on the local pool
+    ("tls://host:8786", ""),
+])
+def test_that_a_scheduler_not_local_or_tcp_host_port_is_one_line_before_anything(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], value: str, why: str) -> None:
+    path = write_campaign(tmp_path)
+    # --dry-run: refused before the campaign's runs are even listed
+    assert main(["sweep", str(path), "--scheduler", value, "--dry-run"]) == 2
+    assert capsys.readouterr() == ("", f"fasthex: --scheduler {value!r}: expected 'local' or "
+                                       f"tcp://HOST:PORT{why}\n")
+
+
+def test_that_the_documented_scheduler_forms_are_accepted() -> None:
+    from groundstation.sweep import check_scheduler
+
+    for value in ("local", "tcp://10.0.0.5:8786", "tcp://sched.lab:1", "tcp://[::1]:65535"):
+        assert check_scheduler(value) == value
+
+
+def runs_not_flown(monkeypatch: pytest.MonkeyPatch) -> list[int | None]:
+    """``sweep``'s runner in this process, giving each run an error row instead of flying it;
+    the list gets the worker count each runner was made for."""
+    import groundstation.sweep as sweep_mod
+
+    asked: list[int | None] = []
+
+    def fake_runner(n: int | None, scheduler: str | None, *,
+                    in_process: bool | None = None) -> SerialRunner:
+        asked.append(n)
+        assert not in_process  # capped to one, still a worker process
+        runner = SerialRunner(lambda spec: died_row(spec, "not flown"))
+        runner.description = f"{n} local worker processes"
+        return runner
+
+    monkeypatch.setattr(sweep_mod, "make_runner", fake_runner)
+    return asked
+
+
+def test_that_an_unreadable_part_is_set_aside_and_its_runs_fly_again(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # Fixture: a sweep killed outright after journaling 4 parts of one row each, one of them
+    # cut short (`truncate -s 100`): every resume used to stop at 'Parquet magic bytes not
+    # found', exit 2
+    path = write_campaign(tmp_path)
+    out = tmp_path / "t.parquet"
+    table = ResultsTable(out, {"campaign": "hop-cli"}, flush_interval_s=0.0)
+    runs = list(load_campaign(path).runs())
+    for run in runs[:4]:
+        table.add(died_row(run, "flown before"))
+    parts = sorted(table.parts_dir.glob("part-*.parquet"))
+    assert len(parts) == 4
+    os.truncate(parts[1], 100)
+    runs_not_flown(monkeypatch)
+    # Test: the dry run only reports it
+    assert main(["sweep", str(path), "--out", str(out), "--dry-run"]) == 0
+    err = capsys.readouterr().err
+    assert err.startswith(f"note: an unreadable part of the results table {parts[1]} (")
+    assert err.splitlines()[0].endswith("; a sweep sets it aside and flies its runs again")
+    assert parts[1].exists()
+    # the sweep sets it aside and flies its run again
+    assert main(["sweep", str(path), "--out", str(out), "--workers", "2"]) == 0
+    err = capsys.readouterr().err
+    corrupt = parts[1].with_name(parts[1].name + ".corrupt")
+    assert err.startswith(f"note: an unreadable part of the results table {corrupt} (")
+    assert "Parquet magic bytes not found" in err.splitlines()[0]
+    assert err.splitlines()[0].endswith("; set aside, its runs fly again")
+    assert "3 already in" in err and "5 to fly" in err
+    # Assert: every run in the table; the corrupt part kept for a look, the others gone
+    rows = table_rows(out)
+    assert set(rows) == {r.run_id for r in runs}
+    assert rows[runs[1].run_id]["error"] == "not flown"
+    assert rows[runs[0].run_id]["error"] == "flown before"
+    assert sorted(table.parts_dir.iterdir()) == [corrupt]
+    assert corrupt.stat().st_size == 100
+
+
+def test_that_parts_and_the_table_are_fsynced_before_their_rename(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # Fixture: os.fsync and os.replace record what they were given (a file by its /proc name)
+    events: list[tuple[str, str]] = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd: int) -> None:
+        events.append(("fsync", os.readlink(f"/proc/self/fd/{fd}")))
+        real_fsync(fd)
+
+    def replace(src: Any, dst: Any) -> None:
+        events.append(("replace", str(dst)))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    path = write_campaign(tmp_path)
+    table = ResultsTable(tmp_path / "t.parquet", {"campaign": "hop-cli"}, flush_interval_s=0.0)
+    # Test
+    table.add(died_row(next(iter(load_campaign(path).runs())), "x"))
+    (part,) = table.parts_dir.glob("part-*.parquet")
+    table.consolidate()
+    # Assert: the data reach the disk before the name does (a power loss between the two left
+    # a truncated part under its final name), then the folder's entry
+    parts_dir = str(table.parts_dir.resolve())
+    assert events == [("fsync", str(part.resolve()) + ".tmp"), ("replace", str(part)),
+                      ("fsync", parts_dir),
+                      ("fsync", str((tmp_path / "t.parquet.tmp").resolve())),
+                      ("replace", str(tmp_path / "t.parquet")),
+                      ("fsync", str(tmp_path.resolve()))]
+
+
+@pytest.mark.parametrize(("cpus", "workers", "started", "note"), [
+    (16, "1000", 8, " (--workers 1000 capped at the 8 run(s) to fly)"),
+    (1, "1000", 4, " (--workers 1000 capped at 4 per core on 1 core(s))"),
+    (16, "3", 3, ""),
+    (16, None, 8, ""),  # the default, every core, is capped at the runs without a note
+    (16, "1000", 1, " (--workers 1000 capped at the 1 run(s) to fly)"),
+])
+def test_that_workers_are_capped_at_the_runs_to_fly_and_per_core(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch,
+        cpus: int, workers: str | None, started: int, note: str) -> None:
+    # Fixture: an 8-run campaign (7 already flown for the last case); the runner is
+    # recorded, the runs are not flown
+    path = write_campaign(tmp_path)
+    if started == 1:
+        table = ResultsTable(tmp_path / "t.parquet", {"campaign": "hop-cli"})
+        for run in list(load_campaign(path).runs())[1:]:
+            table.add(died_row(run, "flown before"))
+        table.consolidate()
+    asked = runs_not_flown(monkeypatch)
+    monkeypatch.setattr(os, "cpu_count", lambda: cpus)
+    # Test (--workers 1000 used to start 1000 processes for 8 runs)
+    assert main(["sweep", str(path), "--out", str(tmp_path / "t.parquet"),
+                 *(["--workers", workers] if workers else [])]) == 0
+    # Assert
+    assert asked == [started]
+    assert f"running on {started} local worker processes{note}\n" in capsys.readouterr().err
 
 
 def test_that_sweep_report_without_a_table_says_what_it_needs(

@@ -141,6 +141,17 @@ def test_that_a_campaign_without_a_tune_section_is_refused(tmp_path: Path,
     assert "no tune: section" in capsys.readouterr().err
 
 
+def test_that_a_bad_scheduler_is_one_line_and_exit_2(tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    # it was a 30-line Dask traceback ('missing port number in address'), exit 1
+    (tmp_path / "hop.yaml").write_text(MISSION)
+    (tmp_path / "step.yaml").write_text(SCENARIO)
+    (tmp_path / "c.yaml").write_text(CAMPAIGN)
+    assert main(["tune", str(tmp_path / "c.yaml"), "--scheduler", "garbage"]) == 2
+    assert capsys.readouterr().err == ("fasthex: --scheduler 'garbage': expected 'local' or "
+                                       "tcp://HOST:PORT\n")
+
+
 def test_that_timeout_stops_a_tune_cleanly_with_nothing_written(tmp_path: Path) -> None:
     """``timeout`` sends SIGTERM to the command and then to its process group (20 ms apart here,
     as when it is preempted between the two): the tune stops as on Ctrl-C, once: its message,

@@ -159,6 +159,35 @@ def test_that_report_on_a_record_without_rows_is_a_user_error(
     assert not (tmp_path / "empty.fhr.report").exists()
 
 
+def test_that_report_out_in_a_bad_place_is_one_line_before_any_work(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Fixture: a record, a regular file, a path under it, and a folder the kernel refuses
+    record = tmp_path / "flight.fhr"
+    with RecordWriter(record, {"mission": "synthetic", "vehicle": "fasthex"}) as w:
+        for row in _rows(10, 5).tolist():
+            w.append(row)
+    empty = tmp_path / "empty.fhr"
+    RecordWriter(empty, {"mission": "synthetic", "vehicle": "fasthex"}).close()
+    afile = tmp_path / "afile"
+    afile.write_text("notes")
+    # Test / Assert: one line each, exit 2 (they were FileExistsError, NotADirectoryError and
+    # FileNotFoundError tracebacks, exit 1)
+    for out, why in ((afile, "is a file; expected a folder for the report"),
+                     (afile / "sub", "cannot create the report folder (Not a directory); "
+                                     "expected a folder path"),
+                     (Path("/proc/rep"), "cannot create the report folder (No such file or "
+                                         "directory); expected a folder path")):
+        assert cli_main(["report", str(record), "--out", str(out)]) == 2
+        assert capsys.readouterr().err == f"fasthex: --out {out}: {why}\n"
+    assert afile.read_text() == "notes"
+    # a missing folder (and its parents) is made, and removed again with a refused record
+    assert cli_main(["report", str(empty), "--out", str(tmp_path / "a" / "b")]) == 2
+    assert "the record has no rows" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists()
+    assert cli_main(["report", str(record), "--out", str(tmp_path / "a" / "b")]) == 0
+    assert (tmp_path / "a" / "b" / "plots.png").is_file()
+
+
 def test_that_event_lines_are_parsed_with_their_flight_time() -> None:
     text = ("flight-ctrl: tk3 firmware mkfl1.8 on /dev/x\n"
             "1.000 s PREFLIGHT -> ARMED: operator: arm\n"

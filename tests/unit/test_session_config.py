@@ -52,6 +52,10 @@ def test_that_every_shipped_session_loads() -> None:
      "backend.mocap: expected one of 'natnet', 'qtm'; got 'vicon'"),
     ("telemetry:\n", 'telemetry:\n  record: "{sesion}-{time}.fhr"\n', "record:",
      "telemetry.record: unknown placeholder {sesion}; expected {session} and {time}"),
+    # a bare true is no choice of rerun's; the message says why YAML saw a boolean
+    ("rerun: auto", "rerun: true", "rerun:",
+     "telemetry.rerun: expected one of 'off', 'save', 'serve', 'spawn', 'auto'; got true (YAML "
+     "reads a bare true as True: write the value in quotes)"),
 ])
 def test_that_a_malformed_session_gives_its_precise_message(
         tmp_path: Path, old: str, new: str, fragment: str, message: str) -> None:
@@ -305,3 +309,14 @@ def test_that_a_malformed_device_uri_is_refused_at_its_line_by_its_drivers_parse
     # Assert: before any device is opened (load_session opens none), at the key's line
     assert str(info.value).startswith(
         f"{path}:{_line_of(text, key + ':')}: backend.{key}: {message}")
+
+
+@pytest.mark.parametrize("written", ["off", "Off", "OFF", '"off"', "{rerun: off}"])
+def test_that_a_bare_off_is_the_choice_off_not_a_boolean(tmp_path: Path, written: str) -> None:
+    # YAML 1.1 reads a bare off as false: it was 'telemetry.rerun: expected one of 'off', ...
+    # got False'
+    text = GOOD.replace("telemetry:\n  rerun: auto", f"telemetry: {written}" if "{" in written
+                        else f"telemetry:\n  rerun: {written}")
+    path = tmp_path / "session.yaml"
+    path.write_text(text)
+    assert load_session(path).telemetry.rerun == "off"
