@@ -138,8 +138,16 @@ class LoopCommandSink:
 
     def submit(self, cmd: op.OperatorCommand) -> op.CommandResult:
         phase = _phase(self.status)
+        if phase in (op.FlightPhase.DISARMED, op.FlightPhase.CUT) and \
+                not isinstance(cmd, op.EmergencyStop | op.Disarm):
+            # a fly session flies once: over (or its motors cut), nothing re-arms or lands it,
+            # now or on a retry (the generic table's ACCEPTED / TEMPORARILY_REJECTED there
+            # would promise what this session cannot do)
+            return op.CommandResult.DENIED
         result = op.decide(cmd, phase, preflight_ok=bool(self.status[STATUS_PREFLIGHT]),
                            max_tilt_rad=self.max_tilt_rad)
+        if phase is op.FlightPhase.ARMED and isinstance(cmd, op.Arm):
+            return result  # already armed: acknowledged, no request (the loop would refuse it)
         request = {op.Arm: "arm", op.Disarm: "disarm", op.Land: "land",
                    op.EmergencyStop: "cut"}.get(type(cmd))
         if result is op.CommandResult.ACCEPTED:

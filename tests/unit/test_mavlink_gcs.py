@@ -115,6 +115,24 @@ def test_that_the_loop_sink_queues_accepted_requests_and_refuses_what_the_sessio
     assert sink.submit(op.Land()) is R.TEMPORARILY_REJECTED  # PREFLIGHT
 
 
+def test_that_the_loop_sink_denies_what_an_ended_session_cannot_do_and_arms_once() -> None:
+    commands: queue.Queue[str] = queue.Queue(maxsize=4)
+    status = _status(op.FlightPhase.ARMED)
+    sink = LoopCommandSink(status, commands, math.radians(35.0))
+    R = op.CommandResult
+    # already armed: acknowledged, and no request the loop would refuse ("cannot arm in ARMED")
+    assert sink.submit(op.Arm()) is R.ACCEPTED and commands.empty()
+    # the session over (DISARMED is final in fly) or its motors cut: no arm, take-off or
+    # land now or on a retry; a disarm or an emergency stop is harmless and acknowledged
+    for phase in (op.FlightPhase.DISARMED, op.FlightPhase.CUT):
+        status[STATUS_STATE] = float(phase)
+        assert sink.submit(op.Arm()) is R.DENIED
+        assert sink.submit(op.Land()) is R.DENIED
+        assert sink.submit(op.Takeoff(1.0)) is R.DENIED
+        assert sink.submit(op.EmergencyStop()) is R.ACCEPTED
+    assert commands.get_nowait() == "cut" and commands.get_nowait() == "cut"
+
+
 def test_that_event_lines_become_status_events_with_their_time_and_severity() -> None:
     ev = status_event("12.345 s TAKEOFF -> MISSION: takeoff complete", 0.0)
     assert (ev.t_s, ev.text, ev.severity) == (12.345, "TAKEOFF -> MISSION: takeoff complete",
