@@ -786,10 +786,15 @@ def merge_truth(record_path: Path, truth_path: Path, imu_rate_hz: float) -> int:
     rows["omega_b_rad_s"][ok] = t[:, 11:14]
     meta = dict(rec.metadata, state="true state of the emulated vehicle (est_*: the estimate)")
     tmp = record_path.with_suffix(record_path.suffix + ".tmp")
-    writer = RecordWriter(tmp, meta, keep_in_memory=False)
-    writer.append_block(rows)
-    writer.close()
-    os.replace(tmp, record_path)
+    try:
+        writer = RecordWriter(tmp, meta, keep_in_memory=False)
+        writer.append_block(rows)
+        writer.close()
+        os.replace(tmp, record_path)
+    except OSError:  # a full disk: the record as the flight wrote it stands, no stray file
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
     return int(np.sum(ok))
 
 

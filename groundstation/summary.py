@@ -114,7 +114,12 @@ def summary_text(summary: dict[str, Any], *, clock: str = "realtime",
     lines += [f"  {f}" for f in faults]
     lines.append(f"estimator:     {s['poses_rejected']} MoCap poses rejected; fusion "
                  f"{s['fusion_delay_ms']:.1f} ms behind the newest IMU sample")
-    lines.append(f"telemetry:     {s['telemetry_dropped']} record rows dropped")
+    lost = next((f for f in faults if "flight record lost" in f), None)
+    if lost is not None:  # the ring's count says nothing once its reader is gone
+        lines.append(f"telemetry:     record lost at {lost.split(': ', 1)[0]}: the rows after "
+                     "it were not written")
+    else:
+        lines.append(f"telemetry:     {s['telemetry_dropped']} record rows dropped")
     lines += extra or []
 
     table = metrics_table(s)

@@ -241,3 +241,14 @@ def test_that_a_status_wider_than_the_terminal_is_cut_between_fields() -> None:
     sut = Console(out, live=True, status=lambda: line + "  tick 0.39 ms")
     sut._flush(show_status=True)
     assert out.getvalue() == line[:line.rindex("  late")]
+
+
+def test_that_a_lost_record_is_said_instead_of_a_count_of_dropped_rows() -> None:
+    # the telemetry process died in flight: its ring's drop count stays 0, the record ends
+    summary = _summary()
+    summary["faults"] = ["7.602 s: flight record lost: the telemetry process exited (exit code "
+                         "-9)"]
+    text = summary_text(summary)
+    assert "telemetry:     record lost at 7.602 s: the rows after it were not written\n" in text
+    assert "record rows dropped" not in text
+    assert "telemetry:     0 record rows dropped\n" in summary_text(_summary())

@@ -191,3 +191,35 @@ def test_that_only_a_regular_file_is_read_as_a_record(tmp_path: Path) -> None:
         with pytest.raises(RecordFormatError) as err:
             read_record(path)
         assert str(err.value) == f"{path}: not a regular file (a folder, a device or a pipe)"
+
+
+def test_that_a_truth_merge_that_cannot_write_leaves_the_record_and_no_stray_file(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import errno
+
+    from groundstation.record import RECORD_DTYPE, RecordWriter
+    from groundstation.session import merge_truth
+
+    # Fixture: a record of 10 rows and a truth log of 10 samples
+    record = tmp_path / "f.fhr"
+    writer = RecordWriter(record, {"source": "test"}, keep_in_memory=False)
+    rows = np.zeros(10, dtype=RECORD_DTYPE)
+    rows["t_s"] = np.arange(10) / 500.0
+    writer.append_block(rows)
+    writer.close()
+    before = record.read_bytes()
+    truth = np.zeros((10, 14))
+    truth[:, 0] = np.arange(10) / 500.0
+    truth[:, 7] = 1.0
+    truth.tofile(tmp_path / "truth.f64")
+
+    def full_disk(self: RecordWriter, block: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(RecordWriter, "append_block", full_disk)
+    # Test
+    with pytest.raises(OSError):
+        merge_truth(record, tmp_path / "truth.f64", 500.0)
+    # Assert: the flight's own record unchanged, no .tmp beside it
+    assert record.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.fhr", "truth.f64"]
