@@ -354,6 +354,9 @@ class FlightLoop:
                 last_arrival_ns = imu.arrival_t_ns
             t_ns = imu.seq * self.period_ns if opts.lockstep else imu.t_ns
             gap_s = 0.0 if prev_seq is None else (imu.seq - prev_seq) * self.period_ns * 1e-9
+            if opts.lockstep and gap_s > 1.5 * self.period_ns * 1e-9:
+                # lockstep: the wall clock says nothing, the board's missing samples do
+                self._note_gap(round(gap_s * 1e9), t_ns * 1e-9 - (t0_s or 0.0))
             expected += 1 if prev_seq is None else min(max(imu.seq - prev_seq, 1),
                                                       IMU_RATE_MAX_COUNTED_GAP)
             prev_seq = imu.seq
@@ -627,7 +630,8 @@ class FlightLoop:
             log.warning("cannot send the motor stop: %s", exc)
 
     def _note_gap(self, gap_ns: int, t_s: float) -> None:
-        """Keep the longest gap between IMU arrivals (realtime), and when it happened."""
+        """Keep the longest gap between IMU arrivals (realtime; in lockstep between the board's
+        sample times, counted only where samples are missing), and when it happened."""
         if gap_ns > self._longest_gap_ns:
             self._longest_gap_ns = gap_ns
             self._counters["imu_gap_max_us"] = gap_ns // 1000

@@ -298,6 +298,10 @@ def test_that_an_imu_link_just_inside_its_limits_takes_no_action(tmp_path: Path)
     assert IMU_MIN_RATE_FRACTION <= x["imu_rate_min_fraction"] <= 0.92
     assert 0.09 <= x["imu_gap_max_s"] <= 0.1
     assert out.out.result.counters["imu_missing"] > 300  # the loop bridged every lost sample
+    # the longest gap fly --json reports: in lockstep the board's missing samples (it was 0)
+    c = out.out.result.counters
+    assert 90_000 <= c["imu_gap_max_us"] <= 100_000
+    assert 3.09 <= c["imu_gap_max_at_ms"] / 1e3 <= 3.1 + TICK_S
     landed_near(out, (0.1, -0.1), 0.05)
 
 
