@@ -46,7 +46,12 @@ def run(args: argparse.Namespace) -> int:
     from groundstation.campaign import load_campaign
     from groundstation.cli import UserError
     from groundstation.signals import stop_signals_blocked, stop_signals_interrupt
-    from groundstation.sweep import check_scheduler, make_runner, rows_to_table
+    from groundstation.sweep import (
+        MAX_WORKERS_PER_CPU,
+        check_scheduler,
+        make_runner,
+        rows_to_table,
+    )
     from groundstation.tune import (
         best_trial,
         report_markdown,
@@ -72,11 +77,18 @@ def run(args: argparse.Namespace) -> int:
     vehicle_name = yaml.safe_load(campaign.base_texts["vehicle"][0]).get("name", "vehicle")
     out = Path(args.out) if args.out else Path(f"{vehicle_name}-{campaign.name}.yaml")
     workers = args.workers if args.workers is not None else (os.cpu_count() or 1)
+    capped = ""
+    cpus = os.cpu_count() or 1
+    if args.scheduler in (None, "local") and workers > MAX_WORKERS_PER_CPU * cpus:
+        # as sweep caps its local pool (a trial flies a whole campaign, so runs are never few)
+        capped = (f" (--workers {workers} capped at {MAX_WORKERS_PER_CPU} per core on {cpus} "
+                  "core(s))")
+        workers = MAX_WORKERS_PER_CPU * cpus
     with stop_signals_blocked():
         runner = make_runner(workers, args.scheduler)
     print(f"tuning {', '.join(p.name for p in campaign.spec.tune.parameters)} on "
-          f"{campaign.name}: {campaign.n_runs()} runs per trial, on {runner.description}",
-          file=sys.stderr)
+          f"{campaign.name}: {campaign.n_runs()} runs per trial, on {runner.description}"
+          f"{capped}", file=sys.stderr)
     with stop_signals_interrupt():  # SIGTERM, SIGHUP: as Ctrl-C; a repeat is the same stop
         try:
             try:

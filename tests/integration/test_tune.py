@@ -210,3 +210,31 @@ def test_that_timeout_stops_a_tune_cleanly_with_nothing_written(tmp_path: Path) 
             except OSError:
                 pass
     assert left == []
+
+
+def test_that_local_workers_are_capped_per_core(tmp_path: Path,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    # it started every process asked for (--workers 1000: a thousand interpreters)
+    import os
+
+    import groundstation.sweep as sweep_module
+
+    (tmp_path / "hop.yaml").write_text(MISSION)
+    (tmp_path / "step.yaml").write_text(SCENARIO)
+    (tmp_path / "c.yaml").write_text(CAMPAIGN)
+    asked: list[int | None] = []
+
+    class RunnerNotStartedError(Exception):
+        pass
+
+    def no_runner(workers: int | None, scheduler: str | None, *args: object,
+                  **kwargs: object) -> None:
+        asked.append(workers)
+        raise RunnerNotStartedError
+
+    monkeypatch.setattr(sweep_module, "make_runner", no_runner)
+    cap = sweep_module.MAX_WORKERS_PER_CPU * (os.cpu_count() or 1)
+    for requested, expected in ((1000, cap), (1, 1), (cap, cap)):
+        with pytest.raises(RunnerNotStartedError):
+            main(["tune", str(tmp_path / "c.yaml"), "--workers", str(requested)])
+        assert asked[-1] == expected
