@@ -500,17 +500,16 @@ class FlightLoop:
             landed_imu = still_since_s is not None and t_s - still_since_s >= IMU_LANDED_S
             aloft_since_s = (aloft_since_s or t_s) if phase == "done" and not near_ground \
                 else None
-            mocap_consistent = self._mocap_consistent(t_s)
             h = self._health(0.0, link_ok, t_s - self._last_pose_t_s, estimator_ok,
                              servo_health,
                              battery_v, est_state, on_ground, phase, spinning,
                              lifted_off=lifted_off, takeoff_reached=at_height,
-                             mocap_consistent=mocap_consistent,
+                             mocap_consistent=self._mocap_consistent(t_s),
                              servo_detail=_servo_detail(servo_state)
                              if servo_health is ServoHealth.FAULT else "",
                              ended_aloft=aloft_since_s is not None
                              and t_s - aloft_since_s >= ENDED_ALOFT_S,
-                             landed_imu=landed_imu and sm.state is FlightState.LANDING)
+                             landed_imu=landed_imu)
             flying = sm.state in FLYING  # the extremes of this tick, added after the send
             directive = sm.update(t_s, h)
             # a failsafe in a planned landing stays LANDING but is a transition all the same
