@@ -66,7 +66,15 @@ S_AXES = 47         # 6 x 3: thrust axes (body)
 S_DAXES = 65        # 6 x 3: d axis / d tilt
 S_MOMENTS = 83      # 6 x 3: arm moment + drag torque per unit thrust (about the centre of mass)
 S_C_F = 101         # 6: actual thrust coefficients (N/Hz^2)
-N_STATE = 107
+S_IMPULSE = 107     # 3: a touchdown's velocity change the accelerometer has still to feel (world)
+S_IMPULSE_RATE = 110  # 3: ... and how fast it feels it (m/s^2, world)
+N_STATE = 113
+
+#: a touchdown stops the body within one step (the contact is a clamp), but its gear takes
+#: about this long: the accelerometer feels the stop spread over it, as a real one feels the
+#: impact (a dead reckoning on the IMU then stops at the ground too; 0.12 m/s: 6 m/s^2 for
+#: 20 ms; a crash's peak is clipped by the sensor's range, as a real one's is)
+CONTACT_S = 0.02
 
 # -- the constants ----------------------------------------------------------------------------
 P_M = 0             # mass (kg)
@@ -362,6 +370,9 @@ def _substep(s: FloatArray, p: FloatArray, h: float, normals: FloatArray, k_norm
         x[0] = x[0] - rc0 + c0
         x[1] = x[1] - rc1 + c1
         x[2] = ground + c2
+        for j in range(3):
+            s[S_IMPULSE + j] -= x[3 + j]
+            s[S_IMPULSE_RATE + j] = s[S_IMPULSE + j] / CONTACT_S
         x[3] = x[4] = x[5] = 0.0
         x[6], x[7], x[8], x[9] = yw, 0.0, 0.0, yz_
         x[10] = x[11] = x[12] = 0.0
@@ -430,4 +441,31 @@ def advance(s: FloatArray, p: FloatArray, h: float, n: int, normals: FloatArray,
         if capture or not math.isnan(speed):
             events += 1
     specific_force(s, p)
+    if s[S_IMPULSE] != 0.0 or s[S_IMPULSE + 1] != 0.0 or s[S_IMPULSE + 2] != 0.0:
+        _feel_contact(s, n * h)
     return events
+
+
+@_jit
+def _feel_contact(s: FloatArray, dt: float) -> None:
+    """Add to the specific force of this ``dt`` the part of a touchdown's velocity change felt
+    in it (``S_IMPULSE`` at ``S_IMPULSE_RATE``, see :data:`CONTACT_S`)."""
+    a = np.zeros(3)
+    for j in range(3):
+        rem = s[S_IMPULSE + j]
+        use = s[S_IMPULSE_RATE + j] * dt
+        if abs(use) >= abs(rem):
+            use = rem
+        s[S_IMPULSE + j] = rem - use
+        a[j] = use / dt
+    qw, qx, qy, qz = s[S_X + 6], s[S_X + 7], s[S_X + 8], s[S_X + 9]
+    xx, yy, zz = qx * qx, qy * qy, qz * qz
+    xy, xz, yz = qx * qy, qx * qz, qy * qz
+    wx, wy, wz = qw * qx, qw * qy, qw * qz
+    # R^T a: the world acceleration in the body frame
+    s[S_SPECIFIC] += (1.0 - 2.0 * (yy + zz)) * a[0] + 2.0 * (xy + wz) * a[1] \
+        + 2.0 * (xz - wy) * a[2]
+    s[S_SPECIFIC + 1] += 2.0 * (xy - wz) * a[0] + (1.0 - 2.0 * (xx + zz)) * a[1] \
+        + 2.0 * (yz + wx) * a[2]
+    s[S_SPECIFIC + 2] += 2.0 * (xz + wy) * a[0] + 2.0 * (yz - wx) * a[1] \
+        + (1.0 - 2.0 * (xx + yy)) * a[2]
