@@ -52,7 +52,9 @@ class DisturbancePreset:
     gyro_bias_sigma_rad_s: float = spec(0.005, ge=0.0, le=1.0)
     accel_noise_density_m_s2_rthz: float = spec(2e-3, ge=0.0, le=1.0)
     accel_bias_sigma_m_s2: float = spec(0.05, ge=0.0, le=5.0)
-    # the ground station's loop runs at the IMU rate: 100 Hz .. 2 kHz as in the sessions
+    # simulate's loop runs at this IMU rate: 100 Hz .. 2 kHz as in the sessions. In fly the
+    # emulated board samples at the rate its host sets (the session's backend.imu_rate_hz),
+    # each sample's noise from the densities above at that rate
     imu_rate_hz: float = spec(500.0, ge=100.0, le=2000.0)
     # MoCap systems run at 30 Hz (webcams) .. 1 kHz (OptiTrack Prime at low resolution)
     mocap_rate_hz: float = spec(100.0, ge=10.0, le=1000.0)

@@ -61,12 +61,28 @@ class ImuModel:
             float(x) for x in rng.normal(0.0, 1.0, 3) * preset.gyro_bias_sigma_rad_s)
         self.accel_bias_m_s2: Vec3 = tuple(  # type: ignore[assignment]
             float(x) for x in rng.normal(0.0, 1.0, 3) * preset.accel_bias_sigma_m_s2)
-        half_rate = math.sqrt(preset.imu_rate_hz / 2.0)
-        self.gyro_sigma_rad_s = preset.gyro_noise_density_rad_s_rthz * half_rate
-        self.accel_sigma_m_s2 = preset.accel_noise_density_m_s2_rthz * half_rate
+        self._gyro_density = preset.gyro_noise_density_rad_s_rthz
+        self._accel_density = preset.accel_noise_density_m_s2_rthz
+        self._set_rate(preset.imu_rate_hz)
+        self._period_ns = round(1e9 / preset.imu_rate_hz)
+        self._last_t_s: float | None = None
+
+    def _set_rate(self, rate_hz: float) -> None:
+        half_rate = math.sqrt(rate_hz / 2.0)
+        self.gyro_sigma_rad_s = self._gyro_density * half_rate
+        self.accel_sigma_m_s2 = self._accel_density * half_rate
 
     def sample(self, t_s: float, omega_b_rad_s: Vec3, specific_force_b_m_s2: Vec3
                ) -> ImuReading:
+        # the white noise of a sample follows the rate it is taken at (the density is the
+        # sensor's): an emulated board asked for 1 kHz by its host samples at 1 kHz whatever
+        # the preset's imu_rate_hz (the rate of simulate's loop) says
+        last, self._last_t_s = self._last_t_s, t_s
+        if last is not None:
+            period_ns = round((t_s - last) * 1e9)
+            if period_ns > 0 and period_ns != self._period_ns:
+                self._period_ns = period_ns
+                self._set_rate(1e9 / period_ns)
         gs, as_ = self.gyro_sigma_rad_s, self.accel_sigma_m_s2
         gb, ab = self.gyro_bias_rad_s, self.accel_bias_m_s2
         w, f = omega_b_rad_s, specific_force_b_m_s2
