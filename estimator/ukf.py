@@ -47,9 +47,10 @@ like an external pull; both are what the controller's ``force_feedforward`` shou
 
 from __future__ import annotations
 
+import copy
 import enum
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -100,6 +101,30 @@ flight saw a 9.0 ms outlier among 11.0 ms latencies). Poses below the horizon co
 extra: the filter takes the queued inputs up to their capture time, which it would take on
 the next ticks anyway. With a window under 8 poses the horizon is the smallest latency.
 """
+
+
+#: :meth:`Ukf.dead_reckon_from` takes a bias from now where the checkpoint's variance of it was
+#: this many times larger (4: twice the sigma; seen: 5x the sigma at arming, 1.1x later on)
+BIAS_UNSETTLED_VAR_RATIO = 4.0
+
+
+class UkfCheckpoint(NamedTuple):
+    """A copy of a filter's state (:meth:`Ukf.checkpoint`)."""
+
+    t_s: float
+    """The newest IMU sample's time then (s)."""
+    state: dict[str, object]
+
+
+#: left out of a checkpoint: configuration and constants, the kernels (stateless), the history
+#: ring (no pose is fused into the past of a dead reckoning), the start-up collector and the
+#: counters of what happened (they go on counting)
+_CHECKPOINT_SKIP = frozenset({
+    "cfg", "_gravity_w", "kernel_name", "_step_kernel", "_kernel", "_R", "_diag",
+    "_hist_t", "_hist_x", "_hist_P", "_hist_q", "_hist_gyro", "_hist_accel", "_steps_py",
+    "_fobs_const", "_noise_rates", "_horizon_rank", "_rest", "_accepted", "_rejected",
+    "_too_old", "_resets", "_repairs", "_imu_out_of_order", "_imu_invalid", "_poses_invalid",
+    "_last_nis"})
 
 
 class PoseVerdict(enum.Enum):
@@ -648,6 +673,40 @@ class Ukf:
         return (max(P.item(0, 0), P.item(1, 1), P.item(2, 2)) <= cfg.diverged_pos_sigma_m ** 2
                 and max(P.item(6, 6), P.item(7, 7), P.item(8, 8))
                 <= math.radians(cfg.diverged_att_sigma_deg) ** 2)
+
+    def checkpoint(self) -> UkfCheckpoint:
+        """The filter as it is now, to dead reckon from later (:meth:`dead_reckon_from`).
+        A copy of the state the predictions use (about 6 kB: mean, covariance, the output
+        queue, the force observer); not the history ring, the configuration or the counters."""
+        return UkfCheckpoint(self._now_s, {k: copy.deepcopy(v) for k, v in vars(self).items()
+                                           if k not in _CHECKPOINT_SKIP})
+
+    def dead_reckon_from(self, checkpoint: UkfCheckpoint,
+                         imu_inputs: Iterable[tuple[float, Vec3Tuple, Vec3Tuple,
+                                                    Vec3Tuple | None]]) -> int:
+        """Go back to ``checkpoint`` and predict again with the IMU inputs after it (the
+        arguments of :meth:`predict`, oldest first), fusing nothing: the estimate the IMU alone
+        gives since the checkpoint. For a MoCap found wrong only after it had pulled the
+        estimate for a while (a frozen tracker that still streams). A bias the checkpoint had
+        not settled (:data:`BIAS_UNSETTLED_VAR_RATIO`) is taken from now. The counters go on;
+        the history ring starts again here. Returns the samples replayed."""
+        # a bias the checkpoint knew much less well than the filter does now (a checkpoint
+        # early in the flight, the biases still settling) is taken from now: the MoCap that
+        # went wrong pulls the position and velocity, the biases far less
+        x_now, var_now = self._x.copy(), np.diag(self._P).copy()
+        for k, v in checkpoint.state.items():
+            setattr(self, k, copy.deepcopy(v))     # the checkpoint stays usable
+        var_cp = np.diag(self._P)
+        for block in (GYRO_BIAS, ACCEL_BIAS):
+            if var_cp[block].sum() > BIAS_UNSETTLED_VAR_RATIO * var_now[block].sum():
+                self._x[block] = x_now[block]
+        self._hist_len = 0
+        n = 0
+        for t_s, gyro, accel, force in imu_inputs:
+            if t_s > checkpoint.t_s:
+                self.predict(t_s, gyro, accel, force)
+                n += 1
+        return n
 
     @property
     def filter_steps(self) -> int:
