@@ -298,12 +298,6 @@ class FlightStateMachine:
             return  # on the ground, idle: nothing else can go wrong that landing would fix
         reason = None
         detail = ""     # the driver's word, in the fault only (the transition keeps the reason)
-        if not h.mocap_consistent and self.state is FlightState.TAKEOFF:
-            # near the ground with a position that cannot be trusted: do not climb on it
-            what = "MoCap and IMU disagree (the estimator re-seeds from MoCap again and again)"
-            self._fault(t_s, what)
-            self._go(t_s, FlightState.DISARMED, f"{what}: take-off aborted")
-            return
         if h.mocap_age_s > lim.mocap_timeout_s:
             reason = f"MoCap lost for {h.mocap_age_s:.2f} s (> {lim.mocap_timeout_s:g} s)"
         elif not h.estimator_ok:

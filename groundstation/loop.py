@@ -32,7 +32,7 @@ import math
 import queue
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 from controller.missions import Mission
@@ -43,7 +43,7 @@ from drivers.dynamixel.device import ServoHealth as DxlHealth
 from drivers.dynamixel.device import ServoState
 from drivers.errors import DeviceLostError, DriverError
 from drivers.mikrokopter.device import LinkHealth
-from estimator.ukf import PoseVerdict, Ukf
+from estimator.ukf import PoseVerdict, Ukf, UkfCheckpoint
 from groundstation.console import number
 from groundstation.flight import (
     FLYING,
@@ -125,6 +125,19 @@ TAKEOFF_STEADY_S = 0.3
 #: MoCap inconsistent with the IMU: this many UKF re-seeds within this window
 RESEEDS_INCONSISTENT = 3
 RESEED_WINDOW_S = 1.0
+#: MoCap found inconsistent in flight is not fused again (a frozen or wrong tracker pins the
+#: estimate where it says, however the vehicle moves): the landing that follows runs on the
+#: IMU alone, its reference sinking this far below the ground so that only the IMU's
+#: touchdown ends it (the dead-reckoned height is not trusted to say where the ground is)
+BLIND_SINK_M = 1.0
+#: ... and the estimate goes back this far (the UKF checkpointed every CHECKPOINT_EVERY_S)
+#: and runs on the IMU alone from there: a tracker that froze still streams poses the UKF
+#: fuses until they disagree too much, pulling the estimate's velocity to zero and its
+#: accelerometer bias off (seen: 0.8 s from a freeze to the failsafe in a climb, 1.9-3.2 s in
+#: a hover); dead reckoned from before, a landing 4-8 s later is still within centimetres
+DEAD_RECKON_LOOKBACK_S = 3.0
+CHECKPOINT_EVERY_S = 0.5
+CHECKPOINT_PHASE = 7  # the tick in each period: not one of the servo's or the link check's
 #: ticks between two evaluations of the preflight checks (0.1 s at 500 Hz)
 PREFLIGHT_CHECK_TICKS = 50
 
@@ -252,6 +265,17 @@ class FlightLoop:
         self._reseeds: collections.deque[float] = collections.deque(maxlen=8)
         self._last_frame = -1               # frame number of the newest pose taken
         self._last_pose_t_s = -math.inf     # capture time of the newest valid pose fused
+        #: MoCap disagreed with the IMU in flight: its poses are no longer fused (latched)
+        self.mocap_distrusted = False
+        # UKF checkpoints and the IMU inputs since the oldest, to dead reckon from before a
+        # disagreement began (DEAD_RECKON_LOOKBACK_S)
+        rate_hz = 1e9 / self.period_ns
+        self._checkpoint_ticks = max(1, round(CHECKPOINT_EVERY_S * rate_hz))
+        self._checkpoint_phase = CHECKPOINT_PHASE % self._checkpoint_ticks
+        kept = math.ceil(DEAD_RECKON_LOOKBACK_S / CHECKPOINT_EVERY_S) + 2
+        self._checkpoints: collections.deque[UkfCheckpoint] = collections.deque(maxlen=kept)
+        self._imu_inputs: collections.deque[tuple[Any, ...]] = collections.deque(
+            maxlen=(kept + 1) * self._checkpoint_ticks)
 
     # -- the loop --------------------------------------------------------------------------
     def run(self) -> LoopResult:
@@ -273,6 +297,7 @@ class FlightLoop:
         time_limit_told = 0  # 1: the session time limit landed the vehicle, 2: it cut
         record_lost_why: str | None = None  # the flight record lost: why (acted on once)
         record_lost_told = False
+        blind_cut_told = False  # the blind landing's depth reached without a touchdown
         tick: ControlTick | None = None
         force_cmd_b: tuple[float, float, float] = (0.0, 0.0, 0.0)
         est_state = VehicleState((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0),
@@ -395,8 +420,10 @@ class FlightLoop:
                 alpha = min(max(servo_state.tilt_rad, 0.0), self.params.tilt.max_tilt_rad)
 
             # 3. (predict part)
-            self.ukf.predict(t_s, imu.gyro_rad_s, imu.accel_m_s2,
-                             force_cmd_b if tick is not None else None)
+            imu_input = (t_s, imu.gyro_rad_s, imu.accel_m_s2,
+                         force_cmd_b if tick is not None else None)
+            self.ukf.predict(*imu_input)
+            self._imu_inputs.append(imu_input)
             # plain floats and one check, not the full estimate (its covariance copy and
             # health report cost as much as the predict)
             force_ext = None
@@ -456,6 +483,15 @@ class FlightLoop:
                 time_limit_told = 2
                 sm.limit(t_s, f"no touchdown {TIME_LIMIT_CUT_S:g} s after the session time "
                          "limit", cut=True)
+            if self.mocap_distrusted and not blind_cut_told and tick is not None and \
+                    tick.ref.segment == -1 and \
+                    tick.ref.pos_w_m[2] <= opts.ground_z_m - BLIND_SINK_M + 1e-6:
+                # the landing reference has sunk its whole depth below the ground and the IMU
+                # felt no touchdown: the dead-reckoned height is wrong, the vehicle may be
+                # climbing on it
+                blind_cut_told = True
+                sm.limit(t_s, f"no touchdown felt by the IMU {BLIND_SINK_M:g} m below the "
+                         "ground on the dead-reckoned estimate", cut=True)
             if sm.state is FlightState.PREFLIGHT and n % PREFLIGHT_CHECK_TICKS == 0:
                 timed_out = t_s > opts.preflight_timeout_s
                 if (t_s >= opts.min_preflight_s and estimator_ok) or timed_out:
@@ -487,7 +523,8 @@ class FlightLoop:
             at_height = steady_since_s is not None and t_s - steady_since_s >= TAKEOFF_STEADY_S
             spinning = self.imu.motors().all_spinning if sm.state is FlightState.ARMED else True
             on_ground = (sm.state is FlightState.LANDING and ground_since_s is not None
-                         and t_s - ground_since_s > TOUCHDOWN_CONFIRM_S)
+                         and t_s - ground_since_s > TOUCHDOWN_CONFIRM_S
+                         and not self.mocap_distrusted)
             near_ground = self._near_ground(est_state)
             ground_since_s = (ground_since_s or t_s) if near_ground else None
             # the IMU's own touchdown, whatever the estimate says (a frozen or drifting one
@@ -498,13 +535,25 @@ class FlightLoop:
             else:
                 still_since_s = None
             landed_imu = still_since_s is not None and t_s - still_since_s >= IMU_LANDED_S
+            mocap_consistent = self._mocap_consistent(t_s)
+            if not mocap_consistent and not self.mocap_distrusted and sm.state in FLYING:
+                self.mocap_distrusted = True
+                back_s = self._dead_reckon(t_s)
+                est_state = VehicleState(*self.ukf.output_state())
+                force_ext = self.ukf.force_ext_w_n()
+                self.event_sink(f"{t_s:.3f} s MoCap disagrees with the IMU: its poses are no "
+                                f"longer fused; the estimate runs on the IMU alone from "
+                                f"{back_s:.1f} s back, the landing ends on the IMU's touchdown")
+                if land_here is not None:  # a landing already under way goes on blind
+                    land_here = replace(land_here, sink_m=BLIND_SINK_M)
+                on_ground = False
             aloft_since_s = (aloft_since_s or t_s) if phase == "done" and not near_ground \
                 else None
             h = self._health(0.0, link_ok, t_s - self._last_pose_t_s, estimator_ok,
                              servo_health,
                              battery_v, est_state, on_ground, phase, spinning,
                              lifted_off=lifted_off, takeoff_reached=at_height,
-                             mocap_consistent=self._mocap_consistent(t_s),
+                             mocap_consistent=mocap_consistent,
                              servo_detail=_servo_detail(servo_state)
                              if servo_health is ServoHealth.FAULT else "",
                              ended_aloft=aloft_since_s is not None
@@ -564,6 +613,10 @@ class FlightLoop:
             eta_f = 1.0
             if tick is not None:  # the commanded body force feeds the UKF's force observer
                 force_cmd_b, eta_f = self.computer.thrust_force_b(alpha, tick.cmd.thrusts_n)
+
+            if n % self._checkpoint_ticks == self._checkpoint_phase and self.ukf.initialized \
+                    and not self.mocap_distrusted and sm.state is not FlightState.PREFLIGHT:
+                self._checkpoints.append(self.ukf.checkpoint())
 
             # 6. telemetry
             self._push_row(t_s, tick, alpha, est_state, spins, eta_f, directive.state)
@@ -676,7 +729,9 @@ class FlightLoop:
         if pose is None or pose.frame_number == self._last_frame:
             return
         self._last_frame = pose.frame_number
-        if pose.valid:
+        if pose.valid and self.mocap_distrusted:  # received, not fused
+            self._last_pose_t_s = pose.t_ns * 1e-9 - t0_s
+        elif pose.valid:
             cap_s = pose.t_ns * 1e-9 - t0_s
             if math.isfinite(self.ukf.t_s) and self.ukf.update_pose(
                     cap_s, pose.pos_w_m, pose.q_wb) is PoseVerdict.RESET:
@@ -703,7 +758,8 @@ class FlightLoop:
                 q = est.q_wb
                 yaw = math.atan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2))
                 land = LandHere(t_s, est.pos_w_m, (math.cos(yaw / 2), 0.0, 0.0,
-                                                   math.sin(yaw / 2)), self.opts.ground_z_m)
+                                                   math.sin(yaw / 2)), self.opts.ground_z_m,
+                                **({"sink_m": BLIND_SINK_M} if self.mocap_distrusted else {}))
         self._tell_faults()
         return land
 
@@ -812,6 +868,19 @@ class FlightLoop:
             mocap_consistent=mocap_consistent, servo_detail=servo_detail,
             ended_aloft=ended_aloft, landed_imu=landed_imu,
         )
+
+    def _dead_reckon(self, t_s: float) -> float:
+        """The UKF back to its newest checkpoint at least DEAD_RECKON_LOOKBACK_S old (else its
+        oldest), then on the IMU alone to now; how far back it went (s)."""
+        cps = self._checkpoints
+        if not cps:
+            return 0.0
+        cp = cps[0]
+        for c in cps:
+            if c.t_s <= t_s - DEAD_RECKON_LOOKBACK_S:
+                cp = c
+        self.ukf.dead_reckon_from(cp, self._imu_inputs)
+        return t_s - cp.t_s
 
     def _mocap_consistent(self, t_s: float) -> bool:
         """False while MoCap and the IMU keep disagreeing: the UKF re-seeded from MoCap at

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from config.schema import ConfigError, load_config_text
-from controller.missions import MISSION_SCHEMA, Mission, MissionSpec
+from controller.missions import MAX_TOUCHDOWN_SPEED_M_S, MISSION_SCHEMA, Mission, MissionSpec
 from groundstation.flight import FlightState
 from groundstation.loop import ENDED_ALOFT_S
 from groundstation.record import read_record
@@ -152,27 +152,95 @@ def test_that_a_landing_on_the_estimate_touches_down_slowly_and_stays_down(
     assert np.max(z[contact:]) - z[contact] < 0.001
 
 
-def test_that_a_landing_on_an_estimate_stuck_in_the_air_ends_on_the_imus_touchdown(
+def _contact(rec: np.ndarray) -> tuple[int, float]:
+    """The row of the last touchdown (the true vehicle back on its gear) and the vertical speed
+    it came down at (m/s, positive down)."""
+    z, vz = rec["pos_w_m"][:, 2], rec["vel_w_m_s"][:, 2]
+    last_aloft = int(np.where(z > GROUND_Z_M + 0.02)[0][-1])
+    contact = last_aloft + int(np.argmax(z[last_aloft:] <= GROUND_Z_M + 0.001))
+    return contact, float(-vz[contact - 1])
+
+
+def test_that_a_landing_after_the_mocap_froze_runs_on_the_imu_and_ends_on_its_touchdown(
         tmp_path: Path) -> None:
-    # Fixture: MoCap frozen at 5 s (it keeps streaming the pose of then, with its noise): the
-    # estimate stays near it, MoCap and IMU disagree, the failsafe lands on that estimate,
-    # which never comes near the ground. A 30 s limit bounds the flight should the IMU's
-    # touchdown not end it (it idled on the ground until the one-hour limit)
+    # Fixture: MoCap frozen at 5 s in the hover (it keeps streaming the pose of then, with its
+    # noise). The UKF fuses it until it disagrees too much with the IMU, then re-seeds on it
+    # again and again: MoCap and IMU disagree, the failsafe lands. Landing on that estimate,
+    # held near the frozen pose, brought the vehicle down at idle, 1.2-1.5 m/s; now the
+    # estimate goes back 3 s, before the freeze, and runs on the IMU alone from there.
+    # A 30 s limit bounds the flight should the landing not end.
+    cfg, params, mission = short_session(tmp_path)
+    cfg = replace(cfg, backend=replace(cfg.backend, faults=("mocap-freeze@5",)),
+                  safety=replace(cfg.safety, session_time_limit_s=30.0))
+    events: list[str] = []
+    # Test
+    outcome = FlightSession(cfg, params, mission, record_path=tmp_path / "frozen.fhr",
+                            echo_events=False, on_event=events.append).run()
+    # Assert: landed on the IMU alone, disarmed by the IMU's touchdown (the estimate's own is
+    # not trusted then), soon after
+    trs = _transitions(outcome)
+    t_land, _, _, why = next(tr for tr in trs if tr[2] is FlightState.LANDING)
+    assert why.startswith("failsafe: MoCap and IMU disagree")
+    assert any("MoCap disagrees with the IMU: its poses are no longer fused" in e
+               for e in events)
+    t_end, frm, to, why = trs[-1]
+    assert (frm, to, why) == (FlightState.LANDING, FlightState.DISARMED,
+                              "touchdown (IMU: still at low thrust)")
+    assert t_end - t_land < 9.0  # 0.7 m at 0.3 m/s, the flare, the IMU's 1 s and the thrust's
+    # descent to 60 % of the weight on the ground
+    rec = read_record(tmp_path / "frozen.fhr").rows
+    contact, speed = _contact(rec)
+    assert speed < MAX_TOUCHDOWN_SPEED_M_S        # truth: a landing, not a fall
+    assert np.max(rec["pos_w_m"][contact:, 2]) - GROUND_Z_M < 0.002   # and it stayed down
+    assert rec["pos_w_m"][-1][2] == pytest.approx(GROUND_Z_M, abs=0.01)
+    drift = np.hypot(*(rec["pos_w_m"][-1][:2] - rec["pos_w_m"][0][:2]))
+    # dead reckoned for ~10 s (from 3 s before the failsafe to the touchdown): an attitude
+    # error of 1-2 mrad moves it 0.5-1 m in that time (1.2 m here; 3.0 m with the estimate
+    # held by a freeze at 4.5 s)
+    assert drift < 1.5
+
+
+def test_that_a_dead_reckoned_landing_that_never_touches_down_is_cut(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # Fixture: the frozen-MoCap landing above, with the dead reckoning made wrong on purpose
+    # (from the rewind on, every accelerometer sample reads 0.5 m/s^2 low on z: the estimate
+    # believes it sinks faster than it does, so the controller holds the true vehicle up
+    # while the estimate goes down through the ground). Only the IMU's touchdown ends a blind
+    # landing, and it never comes: the landing is bounded, the motors are cut once the
+    # reference has sunk BLIND_SINK_M below the ground (a fly-away on a drifting estimate
+    # climbed to 150 km in the simulator without the bound)
+    import groundstation.loop as loop_mod
+
+    original = loop_mod.FlightLoop._dead_reckon
+
+    def wrong_dead_reckoning(self: loop_mod.FlightLoop, t_s: float) -> float:
+        back = original(self, t_s)
+        predict = self.ukf.predict
+
+        def low_accel(t: float, gyro: object, accel: tuple[float, float, float],
+                      force: object = None) -> None:
+            predict(t, gyro, (accel[0], accel[1], accel[2] - 0.5), force)
+
+        self.ukf.predict = low_accel  # type: ignore[method-assign]
+        return back
+
+    monkeypatch.setattr(loop_mod.FlightLoop, "_dead_reckon", wrong_dead_reckoning)
     cfg, params, mission = short_session(tmp_path)
     cfg = replace(cfg, backend=replace(cfg.backend, faults=("mocap-freeze@5",)),
                   safety=replace(cfg.safety, session_time_limit_s=30.0))
     # Test
-    outcome = FlightSession(cfg, params, mission, record_path=tmp_path / "stuck.fhr",
+    outcome = FlightSession(cfg, params, mission, record_path=tmp_path / "lost.fhr",
                             echo_events=False).run()
-    # Assert: disarmed by the IMU (still at low thrust for 1 s), on the ground, soon after
+    # Assert: cut by the bound (not by the session time limit), while the vehicle was in the
+    # air: the reference needs ~(0.8 m + 1 m) / 0.12-0.3 m/s to get there
     trs = _transitions(outcome)
-    t_land, _, _, why = next(tr for tr in trs if tr[2] is FlightState.LANDING)
-    assert why.startswith("failsafe: MoCap and IMU disagree")
-    t_end, frm, to, why = trs[-1]
-    assert (frm, to, why) == (FlightState.LANDING, FlightState.DISARMED,
-                              "touchdown (IMU: still at low thrust)")
-    assert t_end - t_land < 6.0
-    assert any("touchdown seen by the IMU only" in f for f in outcome.result.faults)
-    rec = read_record(tmp_path / "stuck.fhr").rows
-    assert rec["pos_w_m"][-1][2] == pytest.approx(GROUND_Z_M, abs=0.01)  # truth: on its gear
-    assert rec["est_pos_w_m"][-1][2] > GROUND_Z_M + 0.1  # the estimate: still up
+    t_land = next(tr[0] for tr in trs if tr[2] is FlightState.LANDING)
+    t_cut, frm, _, why = next(tr for tr in trs if tr[2] is FlightState.CUT)
+    assert (frm, why) == (FlightState.LANDING, "failsafe (cut): no touchdown felt by the IMU "
+                          f"{loop_mod.BLIND_SINK_M:g} m below the ground on the dead-reckoned "
+                          "estimate")
+    assert 5.0 < t_cut - t_land < 15.0
+    assert trs[-1][2] is FlightState.DISARMED
+    rec = read_record(tmp_path / "lost.fhr").rows
+    assert rec["pos_w_m"][-1][2] > GROUND_Z_M + 0.1  # truth: still up when cut (the bound)
+    assert max(rec["spin_hz"][-1]) == 0.0

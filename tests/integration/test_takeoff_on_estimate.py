@@ -1,14 +1,17 @@
 """Take-off is decided on the estimate, not on the mission's clock (lockstep flights through the
-byte path): a vehicle that cannot lift, or whose MoCap is frozen at the ground, aborts the
-take-off within ``liftoff_timeout_s`` and disarms with the reason; a normal take-off reaches
-MISSION only at the take-off height; a props-off bench session spins the motors and disarms."""
+byte path): a vehicle that cannot lift aborts the take-off within ``liftoff_timeout_s`` and
+disarms with the reason; one whose MoCap is frozen at the ground lands on the IMU alone; a
+normal take-off reaches MISSION only at the take-off height; a props-off bench session spins
+the motors and disarms."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 from flight_support import fly, short_session
 
+from controller.missions import MAX_TOUCHDOWN_SPEED_M_S
 from groundstation.flight import FlightState
 from groundstation.loop import TAKEOFF_TOLERANCE_M
 from groundstation.record import read_record
@@ -37,21 +40,35 @@ def test_that_rotors_without_thrust_abort_the_takeoff_and_disarm(tmp_path: Path)
     assert max(rows["spin_hz"][-1]) == 0.0  # the motors were stopped
 
 
-def test_that_mocap_frozen_at_the_ground_aborts_the_takeoff(tmp_path: Path) -> None:
+def test_that_mocap_frozen_at_the_ground_lands_the_takeoff_on_the_imu(tmp_path: Path) -> None:
     # the IMU feels the climb, the frozen MoCap says ground: the UKF refuses the poses, then
-    # re-seeds on them, again and again; the take-off must not go on on such a position
-    out = fly(tmp_path, faults="mocap-freeze@0")
-    states = [tr.to_state for tr in out.result.transitions]
-    assert states == [FlightState.ARMED, FlightState.TAKEOFF, FlightState.DISARMED]
+    # re-seeds on them, again and again; the take-off must not go on on such a position. It
+    # is caught in the climb, 0.6 m up at 1.2 m/s: the take-off was aborted by disarming, a
+    # drop from there (from 0.9 m with a freeze at 3 s). Now it lands, on an estimate run on
+    # the IMU alone from before the climb (its checkpoint at arming), and the IMU's touchdown
+    # ends it.
+    events: list[str] = []
+    out = fly(tmp_path, faults="mocap-freeze@0", on_event=events.append)
+    trs = out.result.transitions
+    assert [tr.to_state for tr in trs] == [FlightState.ARMED, FlightState.TAKEOFF,
+                                           FlightState.LANDING, FlightState.DISARMED]
     takeoff = _transition(out, FlightState.TAKEOFF)
-    abort = _transition(out, FlightState.DISARMED)
-    assert abort.reason.endswith(": take-off aborted")  # type: ignore[attr-defined]
-    assert "MoCap and IMU disagree" in abort.reason  # type: ignore[attr-defined]
+    land = _transition(out, FlightState.LANDING)
+    assert land.reason.startswith("failsafe: MoCap and IMU disagree")  # type: ignore[attr-defined]
     # three re-seeds within 1 s (groundstation.loop.RESEEDS_INCONSISTENT): caught early in
     # the climb (without the check the vehicle climbed to 6.5 m on a ground-level estimate)
-    assert abort.t_s - takeoff.t_s <= 1.5  # type: ignore[attr-defined]
+    assert land.t_s - takeoff.t_s <= 1.5  # type: ignore[attr-defined]
+    assert any("its poses are no longer fused" in e for e in events)
+    assert trs[-1].reason == "touchdown (IMU: still at low thrust)"
     rows = read_record(out.record_path).rows
-    assert rows["pos_w_m"][:, 2].max() < 0.8  # caught low: at most a 0.7 m drop
+    z, vz = rows["pos_w_m"][:, 2], rows["vel_w_m_s"][:, 2]
+    assert z.max() < 1.0   # the climb stopped
+    last_aloft = int(np.where(z > 0.1 + 0.02)[0][-1])
+    contact = last_aloft + int(np.argmax(z[last_aloft:] <= 0.1 + 0.001))
+    assert -vz[contact - 1] < MAX_TOUCHDOWN_SPEED_M_S  # truth: landed, not dropped
+    assert abs(z[-1] - 0.1) < 0.01 and z[contact:].max() - 0.1 < 0.002
+    assert np.hypot(*(rows["pos_w_m"][-1][:2] - rows["pos_w_m"][0][:2])) < 0.3
+    assert max(rows["spin_hz"][-1]) == 0.0  # the motors were stopped
 
 
 def test_that_a_normal_takeoff_enters_the_mission_at_the_takeoff_height(tmp_path: Path) -> None:
