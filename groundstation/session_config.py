@@ -226,8 +226,9 @@ def load_session(name_or_path: str | Path) -> SessionConfig:
     on its own and across files (module docstring). Errors name the file and line at fault:
     a missing reference the session's line, a broken referenced file its own line.
 
-    A disturbance preset given as a file is returned resolved against the session file (as
-    the vehicle and mission are), so that the emulator reads the file that was validated.
+    The vehicle, and a disturbance preset or a scenario given as a file, are returned resolved
+    against the session file (as the mission is), so that the emulator, another process, reads
+    the file that was validated.
     """
     from groundstation.configs import (
         check_mission_against_vehicle,
@@ -242,6 +243,9 @@ def load_session(name_or_path: str | Path) -> SessionConfig:
     vehicle_path = _reference(path, lines, "vehicle", "vehicles", session.vehicle)
     mission_path = _reference(path, lines, "mission", "missions", session.mission)
     params = load_vehicle(vehicle_path)
+    # the emulator (another process, whatever its working directory) flies the file that was
+    # validated here: a relative file name meant the session's folder to this loader only
+    session = replace(session, vehicle=str(vehicle_path))
     mission_lines: dict[str, int] = {}
     mission = load_mission(mission_path, lines=mission_lines)
     check_mission_against_vehicle(mission, params, str(mission_path), mission_lines)

@@ -20,6 +20,7 @@ from flight_support import SESSION, SHORT_MISSION, fly
 from flight_support import can_hold_cpu_latency as can_request
 from flight_support import open_cpu_latency_requests as open_requests
 
+from config import find_config
 from controller.missions import Mission
 from groundstation.configs import load_mission, load_vehicle
 from groundstation.flight import FlightState
@@ -328,3 +329,31 @@ def test_that_a_session_leaves_the_garbage_collector_as_it_found_it(tmp_path: Pa
     assert out.result.end_reason == "mission complete"
     assert gc.get_freeze_count() == 0
     assert gc.isenabled()
+
+
+def test_that_the_emulator_flies_the_vehicle_file_the_session_names_from_any_directory(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # Fixture: a session in its own folder naming its vehicle by a relative file name, and
+    # the flight started from another folder holding a file of the same relative name (a
+    # decoy: not a vehicle at all). The emulator, another process, looked the name up from
+    # the working directory: it flew the wrong airframe, or (as here) died at start-up.
+    lab = tmp_path / "lab"
+    (lab / "veh").mkdir(parents=True)
+    (lab / "veh" / "ours.yaml").write_text(find_config("vehicles", "fasthex").read_text())
+    (lab / "short-hover.yaml").write_text(SHORT_MISSION)
+    (lab / "session.yaml").write_text(
+        SESSION.format(seed=3, faults="", corrupt=0.0, zmax=2.5, servo_action="hold")
+        .replace("vehicle: fasthex", "vehicle: veh/ours.yaml"))
+    elsewhere = tmp_path / "elsewhere"
+    (elsewhere / "veh").mkdir(parents=True)
+    (elsewhere / "veh" / "ours.yaml").write_text("not: a vehicle\n")
+    monkeypatch.chdir(elsewhere)
+    cfg = load_session(lab / "session.yaml")
+    # Test
+    out = FlightSession(cfg, load_vehicle(cfg.vehicle),
+                        Mission(load_mission(lab / "short-hover.yaml")),
+                        record_path=tmp_path / "f.fhr", echo_events=False).run()
+    # Assert: the validated file, resolved against the session, flown to the end
+    assert cfg.vehicle == str(lab / "veh" / "ours.yaml")
+    assert states(out)[-1] is FlightState.DISARMED
+    assert out.result.end_reason == "mission complete"
