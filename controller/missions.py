@@ -451,13 +451,18 @@ class MissionSpec:
                 _check_sampled_limits(c, key)
 
 
+#: how far below the start height a reference in the air may dip (rounding of paths) (m)
+BELOW_GROUND_TOLERANCE_M = 1e-3
+
+
 def check_ends_on_ground(spec_: MissionSpec) -> None:
     """A mission to fly ends on the ground: a ``land``, then at most ``hold`` segments (on the
     ground). A mission that ended in the air would leave the vehicle hovering at its last
     reference (the ground station lands it by itself only as a failsafe) and ``simulate``
     stops the motors there; a segment after a ``land`` other than a hold would climb from the
-    ground after the flight was taken for over. Checked where mission files are loaded to fly
-    or simulate: a mission spec alone may be a fragment (e.g. to test one segment kind)."""
+    ground after the flight was taken for over. In the air the reference stays above the
+    ground (the start height). Checked where mission files are loaded to fly or simulate: a
+    mission spec alone may be a fragment (e.g. to test one segment kind)."""
     lands = [i for i, seg in enumerate(spec_.segments) if isinstance(seg, LandSegment)]
     if not lands:
         last = len(spec_.segments) - 1
@@ -471,6 +476,26 @@ def check_ends_on_ground(spec_: MissionSpec) -> None:
             raise ConfigValueError(
                 f"segments[{i}].kind", f"a {seg.kind} after the land: expected only hold "
                 "segments after the mission's last land (the vehicle is on the ground)")
+    # in the air, the reference stays above the floor (the start height, where the vehicle
+    # rests): one under it drives the vehicle into the ground mid-mission (simulate counted
+    # the touchdowns and still said ok; fly ended in a failsafe)
+    ground_z = spec_.start_pos_w_m[2]
+    on_ground = True    # from the start, and after a land until the next take-off
+    for i, (seg, (lo, _)) in enumerate(zip(spec_.segments, segment_extents_w_m(spec_),
+                                          strict=True)):
+        if isinstance(seg, TakeoffSegment):
+            on_ground = False
+        elif isinstance(seg, LandSegment):
+            on_ground = True
+            continue
+        if on_ground and isinstance(seg, HoldSegment):
+            continue
+        if lo[2] < ground_z - BELOW_GROUND_TOLERANCE_M:
+            field_name = {"takeoff": "height_m", "sine": "amplitude_m"}.get(seg.kind,
+                                                                            "pos_w_m")
+            raise ConfigValueError(
+                f"segments[{i}].{field_name}", f"the reference reaches z = {lo[2]:.3g} m, "
+                f"below the ground (the start height, z = {ground_z:g} m)")
 
 
 def _check_alpha_timing(seg: Segment, duration_s: float, key: str) -> None:

@@ -288,3 +288,30 @@ def test_that_the_short_hover_with_the_ukf_never_comes_down_harder_than_it_touch
     assert code == 0 and out["verdict"] == "ok"
     assert 1 <= out["touchdowns"] <= 3
     assert out["max_touchdown_speed_m_s"] <= MAX_TOUCHDOWN_SPEED_M_S, out
+
+
+@pytest.mark.parametrize(("moving", "key", "lowest"), [
+    ("  - kind: waypoints\n    points_w_m: [[0.5, 0.0, -0.3], [0.0, 0.0, 1.0]]\n"
+     "    max_speed_m_s: 0.6\n    max_accel_m_s2: 0.6\n", "segments[1].pos_w_m", "-0.3"),
+    ("  - kind: circle\n    duration_s: 12.0\n    radius_m: 0.6\n    plane: xz\n"
+     "    start_angle_deg: 90.0\n    period_s: 6.0\n    fade_in_s: 2.0\n    fade_out_s: 2.0\n",
+     "segments[1].pos_w_m", "-0.2"),
+])
+def test_that_a_reference_below_the_ground_is_refused_at_its_segment(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], moving: str, key: str,
+        lowest: str) -> None:
+    # Fixture: take off to 1 m, then a waypoint or a vertical circle under the floor (the start
+    # height, 0.1 m): simulate flew it, touching down 4-18 times mid-mission, and said ok
+    mission = tmp_path / "under.yaml"
+    mission.write_text(
+        "schema: fasthex.mission\nversion: 1\nname: under\nstart_pos_w_m: [0.0, 0.0, 0.1]\n"
+        "segments:\n  - kind: takeoff\n    duration_s: 3.0\n    height_m: 1.0\n"
+        f"{moving}  - kind: land\n    duration_s: 5.0\n")
+    # Test
+    code = main(["simulate", str(mission), "--preset", "ideal"])
+    err = capsys.readouterr().err.strip()
+    # Assert: one line at the segment, nothing flown
+    assert code == 2
+    line = mission.read_text().splitlines().index(moving.splitlines()[0]) + 1
+    assert err == (f"fasthex: config error: {mission}:{line}: {key}: the reference reaches "
+                   f"z = {lowest} m, below the ground (the start height, z = 0.1 m)")
