@@ -258,7 +258,7 @@ class EmulatedVehicleBackend:
         )
         natnet_cfg = NatNetEmulatorConfig(
             command_port=0,
-            rate_hz=min(max(p.mocap_rate_hz, 100.0), 360.0),
+            rate_hz=p.mocap_rate_hz,
             pos_noise_m=p.mocap_pos_noise_m,
             rot_noise_rad=p.mocap_att_noise_rad,
             latency_s=p.mocap_latency_s,

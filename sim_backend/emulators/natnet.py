@@ -9,7 +9,7 @@ frames to every client that sent CONNECT/KEEPALIVE in the last ``client_timeout_
 (unicast) or to ``multicast_group:data_port`` on ``multicast_interface`` (multicast; loopback
 by default, TTL 0: nothing leaves the machine).
 
-What a real system does to the stream is configurable: rate 100-360 Hz, Gaussian position and
+What a real system does to the stream is configurable: rate 10-1000 Hz, Gaussian position and
 attitude noise, a system latency (frames are sent ``latency_s`` after their mid-exposure and
 the hi-res stamps say so), marker-occlusion dropouts (tracking-valid cleared, the stale pose
 left in the packet, as a careless client would misuse it), frame-number jumps and packet loss.
@@ -90,7 +90,9 @@ class NatNetEmulatorConfig:
     mode: Literal["unicast", "multicast"] = "unicast"
     multicast_group: str = natnet.DEFAULT_MULTICAST_GROUP
     multicast_interface: str = "127.0.0.1"
-    rate_hz: float = spec(100.0, ge=100.0, le=360.0)
+    # Motive's cameras run from 30 Hz (Flex 13) to 1000 Hz (Prime^x 13); the disturbance
+    # presets' range, so that a preset flies in fly at the rate it says
+    rate_hz: float = spec(100.0, ge=10.0, le=1000.0)
     body_name: str = "fasthex"
     body_id: int = spec(1, ge=0)
     static_bodies: tuple[StaticBody, ...] = ()
@@ -119,8 +121,8 @@ class NatNetEmulatorConfig:
             natnet.parse_version(self.version)
         except ValueError as exc:
             raise ConfigValueError("version", str(exc)) from exc
-        if not 100.0 <= self.rate_hz <= 360.0:
-            raise ConfigValueError("rate_hz", "must be in [100, 360] Hz")
+        if not 10.0 <= self.rate_hz <= 1000.0:
+            raise ConfigValueError("rate_hz", "must be in [10, 1000] Hz")
         if self.mode not in ("unicast", "multicast"):
             raise ConfigValueError("mode", "must be 'unicast' or 'multicast'")
         ids = [self.body_id] + [b.body_id for b in self.static_bodies]
