@@ -118,6 +118,10 @@ class TrajectoryTable:
             CubicSpline(self.t_s, np.unwrap(np.array(euler_rad), axis=0), bc_type="clamped"))
         self.alpha_deg = alpha_deg
         self.has_attitude = euler_rad is not None
+        #: the file's line of each row and the alpha column's name, for errors found later
+        #: (an alpha beyond a vehicle's tilt: the vehicle is not known when the file is read)
+        self.row_lines: list[int] | None = None
+        self.alpha_column = "alpha_deg"
 
     def eval(self, t_s: float) -> tuple[Vec3, Vec3, Vec3]:
         (x, vx, ax), (y, vy, ay), (z, vz, az) = self._pos.eval(t_s)
@@ -247,30 +251,47 @@ def load_trajectory_csv(path: Path, limits: Limits) -> TrajectoryTable:
                             [(r["x_m"], r["y_m"], r["z_m"]) for r in values], euler,
                             [r["alpha_deg"] for r in values] if "alpha_deg" in columns else None)
     _check_caps(table, lines, limits, label, col)
+    table.row_lines = list(lines)
+    if "alpha_deg" in columns:
+        table.alpha_column = col("alpha_deg")
     return table
 
 
 def _check_caps(table: TrajectoryTable, lines: list[int], limits: Limits, label: str,
                 col: Callable[[str], str]) -> None:
+    """Speed, acceleration and attitude rate of the splines within the limits; the error
+    names the rows where the worst excess is (a jump's overshoot crosses the limit rows
+    before the jump: the first crossing named the wrong rows and a fraction of the peak)."""
     pos_cols = ", ".join(col(n) for n in ("x_m", "y_m", "z_m"))
     ts = table.t_s
+    worst = {"speed": (0.0, 0), "accel": (0.0, 0), "rate": (0.0, 0)}   # value, row index
     for i in range(len(ts) - 1):
         for k in range(_CHECK_POINTS + 1):
             t = ts[i] + (ts[i + 1] - ts[i]) * k / _CHECK_POINTS
             _, v, a = table.eval(t)
-            speed, accel = math.hypot(*v), math.hypot(*a)
-            where = f"rows at lines {lines[i]}..{lines[i + 1]}"
-            if speed > limits.max_speed_m_s:
-                raise ConfigError(label, lines[i], pos_cols,
-                                  f"the spline through the {where} reaches {speed:.3g} m/s; "
-                                  f"expected <= {limits.max_speed_m_s:g} m/s")
-            if accel > limits.max_accel_m_s2:
-                raise ConfigError(label, lines[i], pos_cols,
-                                  f"the spline through the {where} reaches {accel:.3g} m/s^2; "
-                                  f"expected <= {limits.max_accel_m_s2:g} m/s^2")
+            for name, value in (("speed", math.hypot(*v)), ("accel", math.hypot(*a))):
+                if value > worst[name][0]:
+                    worst[name] = (value, i)
             if table.has_attitude:
                 rate = math.degrees(math.hypot(*table.attitude(t)[1]))
-                if rate > limits.max_rate_deg_s:
-                    raise ConfigError(label, lines[i], "attitude columns",
-                                      f"the attitude through the {where} turns at {rate:.3g} "
-                                      f"deg/s; expected <= {limits.max_rate_deg_s:g} deg/s")
+                if rate > worst["rate"][0]:
+                    worst["rate"] = (rate, i)
+
+    def where(i: int) -> str:
+        return f"rows at lines {lines[i]}..{lines[i + 1]}"
+
+    speed, i = worst["speed"]
+    if speed > limits.max_speed_m_s:
+        raise ConfigError(label, lines[i], pos_cols,
+                          f"the spline through the {where(i)} reaches {speed:.3g} m/s; "
+                          f"expected <= {limits.max_speed_m_s:g} m/s")
+    accel, i = worst["accel"]
+    if accel > limits.max_accel_m_s2:
+        raise ConfigError(label, lines[i], pos_cols,
+                          f"the spline through the {where(i)} reaches {accel:.3g} m/s^2; "
+                          f"expected <= {limits.max_accel_m_s2:g} m/s^2")
+    rate, i = worst["rate"]
+    if rate > limits.max_rate_deg_s:
+        raise ConfigError(label, lines[i], "attitude columns",
+                          f"the attitude through the {where(i)} turns at {rate:.3g} "
+                          f"deg/s; expected <= {limits.max_rate_deg_s:g} deg/s")

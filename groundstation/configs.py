@@ -7,7 +7,7 @@ from pathlib import Path
 
 from config import find_config
 from config.schema import ConfigValueError, load_config
-from controller.params import VEHICLE_SCHEMA, VehicleParams
+from controller.params import VEHICLE_SCHEMA, TiltParams, VehicleParams
 
 DEFAULT_VEHICLE = "fasthex"
 
@@ -74,13 +74,24 @@ def check_mission_against_vehicle(mission: MissionSpec, vehicle: VehicleParams, 
                               f"vehicle {vehicle.name!r} manages {up_max:.3g} m/s^2 up and "
                               f"{down_max:.3g} m/s^2 down (a longer duration_s)")
     tilt = vehicle.tilt
+    for seg in mission.segments:   # a trajectory's alpha column: the file's own line
+        table = getattr(seg, "table", None)
+        if seg.alpha is None and table is not None and table.alpha_deg and table.row_lines:
+            for line, value_deg in zip(table.row_lines, table.alpha_deg, strict=True):
+                if not tilt.min_tilt_deg <= value_deg <= tilt.max_tilt_deg:
+                    raise ConfigError(table.path, line, table.alpha_column,
+                                      f"{value_deg:g} deg is outside vehicle {vehicle.name!r}'s "
+                                      f"tilt ({_tilt_range(tilt)})")
     for key, value_deg in explicit_alphas_deg(mission):
         if not tilt.min_tilt_deg <= value_deg <= tilt.max_tilt_deg:
-            what = (f"a fixed tilt of {tilt.max_tilt_deg:g} deg" if tilt.is_fixed else
-                    f"a tilt range of {tilt.min_tilt_deg:g}..{tilt.max_tilt_deg:g} deg")
             raise ConfigError(file, line_of(lines, key), key,
                               f"{value_deg:g} deg is outside vehicle {vehicle.name!r}'s tilt "
-                              f"({what})")
+                              f"({_tilt_range(tilt)})")
+
+
+def _tilt_range(tilt: TiltParams) -> str:
+    return (f"a fixed tilt of {tilt.max_tilt_deg:g} deg" if tilt.is_fixed else
+            f"a tilt range of {tilt.min_tilt_deg:g}..{tilt.max_tilt_deg:g} deg")
 
 
 def preflight_warnings(mission: Mission, vehicle: VehicleParams, *,

@@ -193,9 +193,9 @@ def test_that_a_trajectory_file_is_splined_with_exact_derivatives(tmp_path: Path
      "column 2 (x_m)"),
     (lambda rows: rows.__setitem__(0, rows[0].replace(",z_m", "")), 1, "column z_m"),
     (lambda rows: rows.__setitem__(0, rows[0] + ",speed"), 1, "column 9 (speed)"),
-    # a 30 m jump in one row: the spline rings ahead of it, the first interval over the cap
-    # is named (a few rows before line 11)
-    (lambda rows: rows.__setitem__(10, "1.8,30.0," + rows[10].split(",", 2)[2]), range(4, 12),
+    # a 30 m jump in one row: the spline rings ahead of it and crosses the cap a few rows
+    # early; the rows of the worst excess are named, the jump's (line 11 or the one before)
+    (lambda rows: rows.__setitem__(10, "1.8,30.0," + rows[10].split(",", 2)[2]), range(10, 12),
      "column 2 (x_m), column 3 (y_m), column 4 (z_m)"),
 ])
 def test_that_bad_trajectory_files_name_file_line_and_column(
@@ -251,3 +251,21 @@ def test_that_the_warning_stays_quiet_at_enough_tilt() -> None:
 def test_that_no_shipped_mission_warns(name: str) -> None:
     m = Mission(load_mission(name, vehicle=PARAMS))
     assert preflight_warnings(m, PARAMS) == []
+
+
+def test_that_a_trajectory_tilt_beyond_the_vehicle_is_named_at_its_csv_row(
+        tmp_path: Path) -> None:
+    # Fixture: the row at t = 4 s (line 22: the header, then a row every 0.2 s) asks 40 deg of
+    # a vehicle that tilts to 35 deg; the error named the mission's `file:` line
+    rows = GOOD_CSV.splitlines()
+    assert rows[21].startswith("4.0,")
+    rows[21] = rows[21].rsplit(",", 1)[0] + ",40.0"
+    mission = _write(tmp_path, "\n".join(rows) + "\n")
+    # Test
+    with pytest.raises(ConfigError) as err:
+        load_mission(mission, vehicle=PARAMS)
+    # Assert: the CSV's file, line and column
+    assert err.value.file == str(tmp_path / "traj.csv")
+    assert (err.value.line, err.value.key) == (22, "column 8 (alpha_deg)")
+    assert err.value.message == ("40 deg is outside vehicle 'fasthex''s tilt (a tilt range of "
+                                 f"0..{PARAMS.tilt.max_tilt_deg:g} deg)")
