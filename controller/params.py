@@ -84,7 +84,9 @@ class RotorParams:
     thrust_coeff_n_per_hz2: float = spec(gt=0.0, le=1.0, doc="c_f: thrust = c_f w^2, w in Hz")
     # every propeller has drag torque: the yaw authority at zero tilt comes from it
     drag_coeff_m: float = spec(gt=0.0, le=1.0, doc="c_f^tau: drag torque = c_f^tau * thrust")
-    first_rotor_ccw: bool = spec(True, doc="propeller 1 spins counter-clockwise (paper)")
+    first_rotor_ccw: bool = spec(
+        True, doc="propeller 1 spins counter-clockwise (paper); false only for tilts below "
+        "atan(c_tau/l)")
 
     def __post_init__(self) -> None:
         if self.min_spin_hz >= self.max_spin_hz:
@@ -248,6 +250,7 @@ class VehicleParams:
                 f"{0.2 * arm_m:.3f}..{1.5 * arm_m:.3f} m)",
             )
         self._check_rotors()
+        self._check_spin_layout()
         self._check_loops()
         upright_lift_n = 6.0 * self.rotors.max_thrust_n
         max_lift_n = upright_lift_n * math.cos(self.tilt.max_tilt_rad)
@@ -298,6 +301,34 @@ class VehicleParams:
                 "rotors.drag_coeff_m",
                 f"drag torque per thrust of {self.rotors.drag_coeff_m:g} m is {ratio:.3g} "
                 f"propeller diameters; real propellers have {lo:g}..{hi:g}",
+            )
+
+    def _check_spin_layout(self) -> None:
+        # Propeller i (tilt sign t_i = (-1)^(i-1)) gives the yaw torque per newton of thrust
+        # -t_i (l sin(alpha) + s c_tau cos(alpha)), s = +1 when propeller 1 spins CCW (the paper)
+        # and -1 when CW. CCW: both terms add for every alpha >= 0 (they cancel at -3.56 deg,
+        # which is why the paper keeps alpha >= 0). CW mirrors that rank loss to +atan(c_tau/l)
+        # = +3.56 deg, inside the range, and above it the tilted thrust's yaw torque opposes
+        # both the drag torque and the reaction to the rotors' spin-up (-s_i J_r 2 pi dw_i/dt
+        # along the axis, the drag's sign): a yaw command first yaws the body the wrong way, a
+        # right-half-plane zero at 2 c_f w (l sin a - c_tau cos a) / (J_r 2 pi cos a), ~5 rad/s
+        # at 10 deg with the paper-calibrated J_r = 1.5e-4 kg m^2 and 30 ms rotor lag; the
+        # paper's yaw gains (K_R 6, K_w 0.5 on J_zz 0.164) are unstable on it from 3.6 to
+        # ~27.5 deg. The vehicle file does not know J_r, so any tilt range reaching the
+        # cancelling tilt is refused.
+        if self.rotors.first_rotor_ccw:
+            return
+        cancel_deg = math.degrees(math.atan2(self.rotors.drag_coeff_m,
+                                             self.geometry.arm_length_m))
+        if self.tilt.max_tilt_deg >= cancel_deg:
+            raise ConfigValueError(
+                "rotors.first_rotor_ccw",
+                f"propeller 1 clockwise turns the tilted thrust's yaw torque against the drag "
+                f"torque: they cancel at atan(c_tau/l) = {cancel_deg:.2f} deg (no yaw "
+                f"authority) and above it the rotors' spin-up reaction yaws the body the wrong "
+                f"way first, which the paper's attitude law cannot fly; expected true (the "
+                f"paper's layout), or tilt.max_tilt_deg below {cancel_deg:.2f} deg, got false "
+                f"with tilts up to {self.tilt.max_tilt_deg:g} deg",
             )
 
     def _check_loops(self) -> None:

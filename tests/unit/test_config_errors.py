@@ -62,6 +62,16 @@ CASES = [
     ("physically impossible inertia", ("[0.089, 0.091, 0.164]", "[0.01, 0.01, 0.164]"),
      "inertia_diag_kg_m2", "inertia_diag_kg_m2",
      "principal moments violate the triangle inequality (not a physical body)"),
+    # the mirrored spin layout moves the paper's -3.56 deg yaw rank loss to +3.56 deg, inside
+    # the tilt range (controller.params: VehicleParams._check_spin_layout)
+    ("clockwise propeller 1 with tilts past the yaw cancellation",
+     ("first_rotor_ccw: true", "first_rotor_ccw: false"), "first_rotor_ccw",
+     "rotors.first_rotor_ccw",
+     "propeller 1 clockwise turns the tilted thrust's yaw torque against the drag torque: they "
+     "cancel at atan(c_tau/l) = 3.56 deg (no yaw authority) and above it the rotors' spin-up "
+     "reaction yaws the body the wrong way first, which the paper's attitude law cannot fly; "
+     "expected true (the paper's layout), or tilt.max_tilt_deg below 3.56 deg, got false with "
+     "tilts up to 35 deg"),
     ("too heavy to fly", ("mass_kg: 3.1", "mass_kg: 5.0"), "mass_kg", "mass_kg",
      "weight 49.1 N needs >= 20 % thrust margin, but the rotors lift at most 50.6 N at the "
      "largest tilt"),
@@ -218,3 +228,15 @@ def test_that_physically_absurd_vehicles_are_refused_with_the_reason(
     with pytest.raises(ConfigError) as info:
         load_vehicle(path)
     assert (info.value.key, info.value.message) == (key, message)
+
+
+def test_that_a_clockwise_propeller_1_is_accepted_below_the_yaw_cancellation(
+        tmp_path: Path) -> None:
+    # Fixture: tilts up to 3.5 deg < atan(c_tau/l) = 3.56 deg: the drag torque still dominates
+    # the yaw and the rotors' spin-up reaction pushes the same way (no right-half-plane zero)
+    text = GOOD.replace("first_rotor_ccw: true", "first_rotor_ccw: false").replace(
+        "max_tilt_deg: 35.0", "max_tilt_deg: 3.5")
+    # Test
+    params = load_vehicle(_write(tmp_path, text))
+    # Assert
+    assert not params.rotors.first_rotor_ccw and params.tilt.max_tilt_deg == 3.5

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from controller.model import VehicleModel, cardan_tilts_rad
+from controller.params import VehicleParams
 from groundstation.configs import load_disturbances, load_vehicle
 from sim_backend import physics
 from sim_backend.simulator import FastHexSimulator, cardan_tilts
@@ -268,3 +269,111 @@ def test_that_the_jitted_physics_equals_its_python_source() -> None:
     # Assert: the same operations in the same order
     np.testing.assert_array_equal(states[0], states[1])
     np.testing.assert_array_equal(outs[0], outs[1])
+
+
+#: propeller 1 clockwise: valid only with tilts below atan(c_tau/l) = 3.56 deg (the physics
+#: below is evaluated at any tilt through the state)
+MIRRORED = dataclasses.replace(
+    PARAMS, rotors=dataclasses.replace(PARAMS.rotors, first_rotor_ccw=False),
+    tilt=dataclasses.replace(PARAMS.tilt, max_tilt_deg=3.0))
+ROTOR_INERTIA = 1.5e-4
+ROTOR_LAG_S = 0.03
+
+
+def _rotor_sim(params: VehicleParams) -> FastHexSimulator:
+    preset = dataclasses.replace(IDEAL, rotor_inertia_kg_m2=ROTOR_INERTIA,
+                                 rotor_time_constant_s=ROTOR_LAG_S)
+    return FastHexSimulator(params, preset)
+
+
+def _angular_acceleration(sim: FastHexSimulator, alpha: float, w: np.ndarray,
+                          w_cmd: np.ndarray, omega: tuple[float, float, float],
+                          tilting: bool, h: float = 1e-6) -> np.ndarray:
+    """d omega/dt of the body (airborne, level) over one physics substep of ``h`` seconds."""
+    s = sim._s
+    s[physics.S_LANDED] = 0.0
+    s[physics.S_X:physics.S_X + 13] = [0, 0, 5, 0, 0, 0, 1, 0, 0, 0, *omega]
+    s[physics.S_SERVO] = alpha
+    physics.set_tilts(s, sim._p, alpha)
+    s[physics.S_W:physics.S_W + 6] = w
+    goal = alpha + (1.0 if tilting else 0.0)
+    physics.advance(s, sim._p, h, 1, np.zeros(3), 0, np.zeros((1, physics.N_WRENCH)), 1e9,
+                    1.0, np.empty((1, physics.N_OUT)), *(float(x) for x in w_cmd), goal)
+    return (s[physics.S_X + 10:physics.S_X + 13] - np.array(omega)) / h
+
+
+def _first_principles_angular_acceleration(
+        ccw: bool, alpha: float, w: np.ndarray, w_dot: np.ndarray,
+        omega: tuple[float, float, float], alpha_dot: float) -> np.ndarray:
+    """Propeller i spins at s_i w_i about its axis n_i (s_i = +1: counter-clockwise seen from
+    above the rotor, (-1)^(i-1) when propeller 1 is CCW); its angular momentum is
+    H_i = J_r 2 pi s_i w_i n_i. The motor reacts on the body with minus what it gives the
+    rotor: the drag it overcomes (-s_i c_tau f_i n_i) and dH_i/dt in B
+    (J_r 2 pi s_i (w_i' n_i + w_i n_i')); Euler: J w' = tau - w x (J w + sum H_i)."""
+    l_m, c_f, c_tau = (PARAMS.geometry.arm_length_m, PARAMS.rotors.thrust_coeff_n_per_hz2,
+                       PARAMS.rotors.drag_coeff_m)
+    inertia = np.diag(PARAMS.inertia_diag_kg_m2)
+    torque, momentum = np.zeros(3), np.zeros(3)
+    for i in range(6):
+        t = 1.0 if i % 2 == 0 else -1.0
+        spin = t if ccw else -t
+        yaw = i * math.pi / 3.0
+        rz = np.array([[math.cos(yaw), -math.sin(yaw), 0.0], [math.sin(yaw), math.cos(yaw), 0.0],
+                       [0.0, 0.0, 1.0]])
+        n = rz @ np.array([0.0, -math.sin(t * alpha), math.cos(t * alpha)])
+        n_dot = rz @ np.array([0.0, -math.cos(t * alpha), -math.sin(t * alpha)]) * t * alpha_dot
+        f = c_f * w[i] ** 2
+        pos = l_m * np.array([math.cos(yaw), math.sin(yaw), 0.0])
+        k = ROTOR_INERTIA * 2.0 * math.pi * spin
+        torque += np.cross(pos, f * n) - spin * c_tau * f * n - k * (w_dot[i] * n + w[i] * n_dot)
+        momentum += k * w[i] * n
+    om = np.array(omega)
+    return np.asarray(np.linalg.solve(inertia, torque - np.cross(om, inertia @ om + momentum)))
+
+
+@pytest.mark.parametrize("ccw", [True, False], ids=["ccw", "cw"])
+@pytest.mark.parametrize("alpha_deg", [0.0, 10.0, 30.0])
+@pytest.mark.parametrize("case", ["steady", "spin-up", "body rate", "tilting"])
+def test_that_the_rotor_torques_follow_the_spin_direction_from_first_principles(
+        ccw: bool, alpha_deg: float, case: str) -> None:
+    # Fixture: uneven rotor speeds (net angular momentum), each term switched on alone
+    sut = _rotor_sim(PARAMS if ccw else MIRRORED)
+    alpha = math.radians(alpha_deg)
+    w = np.array([72.0, 65.0, 80.0, 70.0, 76.0, 61.0])
+    w_cmd = w + (np.array([30.0, -25.0, 20.0, 35.0, -30.0, 15.0]) if case == "spin-up" else 0.0)
+    omega = (0.4, -0.3, 0.7) if case == "body rate" else (0.0, 0.0, 0.0)
+    alpha_dot = math.radians(PARAMS.tilt.max_rate_deg_s) if case == "tilting" else 0.0
+    h = 1e-6
+    # Test
+    got = _angular_acceleration(sut, alpha, w, w_cmd, omega, case == "tilting", h)
+    # Assert: the substep uses the rotor speeds after it (w + (w_cmd - w) h / tau), a thrust
+    # error of 2 c_f w dw per rotor on lever arms < l + c_tau; the terms checked are far larger
+    # (spin-up reaction ~ J_r 2 pi 35 Hz / 30 ms = 1.1 N m, the gyroscopic terms >~ 1e-3 N m)
+    expected = _first_principles_angular_acceleration(ccw, alpha, w, (w_cmd - w) / ROTOR_LAG_S,
+                                                      omega, alpha_dot)
+    dw = np.max(np.abs(w_cmd - w)) * h / ROTOR_LAG_S
+    lever = PARAMS.geometry.arm_length_m + PARAMS.rotors.drag_coeff_m
+    bound = 6.0 * lever * 2.0 * PARAMS.rotors.thrust_coeff_n_per_hz2 * float(np.max(w_cmd)) * dw \
+        / min(PARAMS.inertia_diag_kg_m2)
+    np.testing.assert_allclose(got, expected, rtol=0.0, atol=bound + 1e-5)
+
+
+@pytest.mark.parametrize(("ccw", "reverses"), [(True, False), (False, True)], ids=["ccw", "cw"])
+def test_that_a_yaw_command_first_yaws_the_wrong_way_only_with_propeller_1_clockwise(
+        ccw: bool, reverses: bool) -> None:
+    # Fixture: at 10 deg tilt, speed up propellers 1, 3, 5 and slow down 2, 4, 6 by 2 Hz: the
+    # steady yaw torque (after the 30 ms lag) against the first instant's (the spin-up reaction
+    # alone, J_r 2 pi 2 Hz / 30 ms on each rotor's axis)
+    sut = _rotor_sim(PARAMS if ccw else MIRRORED)
+    alpha = math.radians(10.0)
+    w0 = np.full(6, 72.0)
+    step = 2.0 * np.array([1.0, -1.0, 1.0, -1.0, 1.0, -1.0])
+    # Test
+    first = _angular_acceleration(sut, alpha, w0, w0 + step, (0.0, 0.0, 0.0), False)[2]
+    steady = _angular_acceleration(sut, alpha, w0 + step, w0 + step, (0.0, 0.0, 0.0), False)[2]
+    # Assert: propeller 1 CW puts the tilted thrust's yaw (l sin a) against the drag torque and
+    # the spin-up reaction (c_tau cos a, the same sign): a right-half-plane zero
+    reaction = 6.0 * ROTOR_INERTIA * 2.0 * math.pi * 2.0 / ROTOR_LAG_S * math.cos(alpha) \
+        / PARAMS.inertia_diag_kg_m2[2]
+    assert abs(first) == pytest.approx(reaction, rel=1e-3)
+    assert bool(first * steady < 0.0) is reverses

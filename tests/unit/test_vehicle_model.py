@@ -3,6 +3,7 @@ against first-principles physics."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -41,6 +42,31 @@ def test_that_yaw_controllability_is_lost_at_minus_3_56_deg(fasthex_model: Vehic
     # and not elsewhere on the negative side nearby
     assert fasthex_model.rank(-2.0 * DEG) == 6
     assert fasthex_model.rank(-5.0 * DEG) == 6
+
+
+def test_that_a_clockwise_propeller_1_moves_the_yaw_rank_loss_to_plus_3_56_deg(
+        fasthex_params: VehicleParams) -> None:
+    # Fixture: the mirrored spins (valid only with tilts below 3.56 deg; the model evaluates
+    # any tilt): mirroring the spins mirrors the tilt, so the loss moves to +atan(c_tau / l)
+    mirrored = dataclasses.replace(
+        fasthex_params, rotors=dataclasses.replace(fasthex_params.rotors, first_rotor_ccw=False),
+        tilt=dataclasses.replace(fasthex_params.tilt, max_tilt_deg=3.0))
+    sut = VehicleModel(mirrored)
+    cancel = math.atan(0.019 / 0.305)
+    # Test / Assert: the yaw row vanishes there, and its sign flips across it
+    assert sut.singular_values(cancel)[-1] < 1e-9
+    assert sut.rank(-cancel) == 6
+    _, f2_below = sut.allocation_parts(0.5 * cancel)
+    _, f2_above = sut.allocation_parts(10.0 * DEG)
+    _, f2_stock = VehicleModel(fasthex_params).allocation_parts(10.0 * DEG)
+    assert np.all(np.sign(f2_below[2]) == -np.sign(f2_above[2]))
+    # above it the tilted thrust's yaw opposes the drag torque: l sin a - c_tau cos a per newton
+    # instead of l sin a + c_tau cos a
+    a = 10.0 * DEG
+    np.testing.assert_allclose(np.abs(f2_above[2]), 0.305 * math.sin(a) - 0.019 * math.cos(a),
+                               rtol=1e-12)
+    np.testing.assert_allclose(np.abs(f2_stock[2]), 0.305 * math.sin(a) + 0.019 * math.cos(a),
+                               rtol=1e-12)
 
 
 @pytest.mark.parametrize("tilt_deg", [0.0, 5.0, 12.5, 20.0, 30.0, 35.0])
