@@ -68,12 +68,16 @@ S_MOMENTS = 83      # 6 x 3: arm moment + drag torque per unit thrust (about the
 S_C_F = 101         # 6: actual thrust coefficients (N/Hz^2)
 S_IMPULSE = 107     # 3: a touchdown's velocity change the accelerometer has still to feel (world)
 S_IMPULSE_RATE = 110  # 3: ... and how fast it feels it (m/s^2, world)
-N_STATE = 113
+S_ROT_IMPULSE = 113  # 3: the rotation to level a touchdown made that the gyro has still to feel
+S_ROT_RATE = 116    # 3: ... and how fast it feels it (rad/s, body)
+S_GYRO_FELT = 119   # 3: what the gyro reads on top of the body rate in this sample (rad/s)
+N_STATE = 122
 
-#: a touchdown stops the body within one step (the contact is a clamp), but its gear takes
-#: about this long: the accelerometer feels the stop spread over it, as a real one feels the
-#: impact (a dead reckoning on the IMU then stops at the ground too; 0.12 m/s: 6 m/s^2 for
-#: 20 ms; a crash's peak is clipped by the sensor's range, as a real one's is)
+#: a touchdown stops the body and levels it within one step (the contact is a clamp), but its
+#: gear takes about this long: the accelerometer feels the stop and the gyro the levelling
+#: spread over it, as real ones feel an impact (a dead reckoning on the IMU then stops at the
+#: ground, level, too; 0.12 m/s: 6 m/s^2 for 20 ms; a crash's peak is clipped by the sensor's
+#: range, as a real one's is)
 CONTACT_S = 0.02
 
 # -- the constants ----------------------------------------------------------------------------
@@ -373,6 +377,21 @@ def _substep(s: FloatArray, p: FloatArray, h: float, normals: FloatArray, k_norm
         for j in range(3):
             s[S_IMPULSE + j] -= x[3 + j]
             s[S_IMPULSE_RATE + j] = s[S_IMPULSE + j] / CONTACT_S
+        # the rotation from the touching attitude to the level one, in the body frame:
+        # conj(q) (x) (yw, 0, 0, yz)
+        dw = qw * yw + qz * yz_
+        dx = -yw * qx - qy * yz_
+        dy = -yw * qy + qx * yz_
+        dz = qw * yz_ - yw * qz
+        if dw < 0.0:
+            dw, dx, dy, dz = -dw, -dx, -dy, -dz
+        nv = math.sqrt(dx * dx + dy * dy + dz * dz)
+        to_angle = 2.0 * math.atan2(nv, dw) / nv if nv > 1e-15 else 2.0
+        s[S_ROT_IMPULSE] += to_angle * dx
+        s[S_ROT_IMPULSE + 1] += to_angle * dy
+        s[S_ROT_IMPULSE + 2] += to_angle * dz
+        for j in range(3):
+            s[S_ROT_RATE + j] = s[S_ROT_IMPULSE + j] / CONTACT_S
         x[3] = x[4] = x[5] = 0.0
         x[6], x[7], x[8], x[9] = yw, 0.0, 0.0, yz_
         x[10] = x[11] = x[12] = 0.0
@@ -441,7 +460,10 @@ def advance(s: FloatArray, p: FloatArray, h: float, n: int, normals: FloatArray,
         if capture or not math.isnan(speed):
             events += 1
     specific_force(s, p)
-    if s[S_IMPULSE] != 0.0 or s[S_IMPULSE + 1] != 0.0 or s[S_IMPULSE + 2] != 0.0:
+    s[S_GYRO_FELT] = s[S_GYRO_FELT + 1] = s[S_GYRO_FELT + 2] = 0.0
+    if s[S_IMPULSE] != 0.0 or s[S_IMPULSE + 1] != 0.0 or s[S_IMPULSE + 2] != 0.0 \
+            or s[S_ROT_IMPULSE] != 0.0 or s[S_ROT_IMPULSE + 1] != 0.0 \
+            or s[S_ROT_IMPULSE + 2] != 0.0:
         _feel_contact(s, n * h)
     return events
 
@@ -449,7 +471,8 @@ def advance(s: FloatArray, p: FloatArray, h: float, n: int, normals: FloatArray,
 @_jit
 def _feel_contact(s: FloatArray, dt: float) -> None:
     """Add to the specific force of this ``dt`` the part of a touchdown's velocity change felt
-    in it (``S_IMPULSE`` at ``S_IMPULSE_RATE``, see :data:`CONTACT_S`)."""
+    in it (``S_IMPULSE`` at ``S_IMPULSE_RATE``, see :data:`CONTACT_S`), and set the gyro's
+    share of the levelling (``S_GYRO_FELT`` from ``S_ROT_IMPULSE``)."""
     a = np.zeros(3)
     for j in range(3):
         rem = s[S_IMPULSE + j]
@@ -458,6 +481,12 @@ def _feel_contact(s: FloatArray, dt: float) -> None:
             use = rem
         s[S_IMPULSE + j] = rem - use
         a[j] = use / dt
+        rem = s[S_ROT_IMPULSE + j]
+        use = s[S_ROT_RATE + j] * dt
+        if abs(use) >= abs(rem):
+            use = rem
+        s[S_ROT_IMPULSE + j] = rem - use
+        s[S_GYRO_FELT + j] = use / dt
     qw, qx, qy, qz = s[S_X + 6], s[S_X + 7], s[S_X + 8], s[S_X + 9]
     xx, yy, zz = qx * qx, qy * qy, qz * qz
     xy, xz, yz = qx * qy, qx * qz, qy * qz

@@ -373,7 +373,12 @@ class FastHexSimulator:
     def read_imu(self) -> ImuReading:
         v = self._r
         w = phy.S_X + 10
-        return self.imu.sample(self._t, (v[w], v[w + 1], v[w + 2]),
+        omega = (v[w], v[w + 1], v[w + 2])
+        felt = self._s[phy.S_GYRO_FELT:phy.S_GYRO_FELT + 3]
+        if felt.any():   # a touchdown's levelling, felt by the gyro (physics.CONTACT_S)
+            omega = (omega[0] + float(felt[0]), omega[1] + float(felt[1]),
+                     omega[2] + float(felt[2]))
+        return self.imu.sample(self._t, omega,
                                (v[phy.S_SPECIFIC], v[phy.S_SPECIFIC + 1], v[phy.S_SPECIFIC + 2]))
 
     def scale_rotor_thrust(self, scale: float, rotor: int | None = None) -> None:

@@ -125,6 +125,41 @@ def test_that_the_accelerometer_feels_the_touchdown_that_stops_the_body() -> Non
     assert felt[-1] == pytest.approx(0.0, abs=1e-9)
 
 
+def test_that_the_gyro_feels_the_touchdown_that_levels_the_body() -> None:
+    # Fixture: the descent above with the body rolling (a blow to an arm) so that it touches
+    # down tilted; the contact levels it at once, which the gyro must read as a real gear's
+    # levelling (the rate spread over CONTACT_S): a dead reckoning kept the tilt, and g times
+    # that tilt drove its horizontal estimate away on the ground (0.7 m in 2.6 s)
+    sut = FastHexSimulator(PARAMS, IDEAL)
+    hover = _hover_spins(0.0)
+    sut.command_rotor_speeds_hz([w * 1.015 for w in hover])
+    sut.advance(1.0)
+    sut.command_rotor_speeds_hz([w * 0.95 for w in hover])
+    sut.advance(0.3)
+    sut.kick_body_rate((0.3, 0.0, 0.0))
+    q = np.array(sut.state().q_wb, dtype=float)   # attitude dead reckoned on the gyro
+    dt = 0.002
+    landed_at = None
+    for k in range(5000):
+        sut.advance(dt)
+        w = np.array(sut.read_imu().gyro_rad_s) * dt     # IDEAL: no noise, no bias
+        angle = float(np.linalg.norm(w))
+        dq = np.r_[math.cos(angle / 2), (w / angle) * math.sin(angle / 2)] if angle else \
+            np.array([1.0, 0.0, 0.0, 0.0])
+        q = np.array([q[0] * dq[0] - q[1:] @ dq[1:],
+                      *(q[0] * dq[1:] + dq[0] * q[1:] + np.cross(q[1:], dq[1:]))])
+        if sut.landed and landed_at is None:
+            landed_at = k
+            tilt_deg = math.degrees(2 * math.acos(min(1.0, math.hypot(q[0], q[3]))))
+        if landed_at is not None and k > landed_at + 50:
+            break
+    # Assert: it touched down tilted, and the gyro's attitude ends level as the body is
+    assert tilt_deg > 2.0
+    final = np.array(sut.state().q_wb)
+    err_deg = math.degrees(2 * math.acos(min(1.0, abs(float(final @ q)))))
+    assert err_deg < 0.05
+
+
 def test_that_rotor_speeds_lag_with_the_configured_time_constant() -> None:
     # Fixture
     sut = FastHexSimulator(PARAMS, CALIBRATED)
