@@ -151,9 +151,11 @@ def _timed_classes(ticks: _Ticks) -> tuple[type[FastHexSimulator], type[FlightCo
     class TimedComputer(FlightComputer):
         def step(self, t_s: float, state: VehicleState, alpha_rad: float,
                  ref: Reference | None = None, hold_tilt: bool = False,
-                 force_ext_w_n: Vec3 | None = None) -> ControlTick:
+                 force_ext_w_n: Vec3 | None = None,
+                 ref_offset_w_m: Vec3 | None = None) -> ControlTick:
             t0 = _ns()
-            out = super().step(t_s, state, alpha_rad, ref, hold_tilt, force_ext_w_n)
+            out = super().step(t_s, state, alpha_rad, ref, hold_tilt, force_ext_w_n,
+                               ref_offset_w_m)
             ticks.add("controller", _ns() - t0)
             return out
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from controller.geometric import Command, GeometricController
 from controller.missions import Mission
@@ -89,14 +89,19 @@ class FlightComputer:
 
     def step(self, t_s: float, state: VehicleState, alpha_rad: float,
              ref: Reference | None = None, hold_tilt: bool = False,
-             force_ext_w_n: Vec3 | None = None) -> ControlTick:
+             force_ext_w_n: Vec3 | None = None,
+             ref_offset_w_m: Vec3 | None = None) -> ControlTick:
         """One tick at mission time ``t_s``. ``ref`` overrides the mission's reference (a
         failsafe landing); ``hold_tilt`` freezes the tilt command at the measured tilt;
         ``force_ext_w_n`` is the estimator's external force, fed forward when the vehicle's
-        ``force_feedforward`` is on."""
+        ``force_feedforward`` is on; ``ref_offset_w_m`` moves the mission's reference (the
+        estimate was re-seeded that far: a MoCap frame that jumped)."""
         mission = self.mission
         if ref is None:
             ref = mission.reference(t_s)
+            if ref_offset_w_m is not None:
+                p, o = ref.pos_w_m, ref_offset_w_m
+                ref = replace(ref, pos_w_m=(p[0] + o[0], p[1] + o[1], p[2] + o[2]))
         alpha_ref = ref.alpha_rad if self.tilt_override_rad is None else self.tilt_override_rad
         demand = None
         margin = 0.0

@@ -47,6 +47,7 @@ from estimator.ukf import PoseVerdict, Ukf, UkfCheckpoint
 from groundstation.console import number
 from groundstation.flight import (
     FLYING,
+    MOTORS_ON,
     FlightState,
     FlightStateMachine,
     HealthSnapshot,
@@ -267,6 +268,11 @@ class FlightLoop:
         self._last_pose_t_s = -math.inf     # capture time of the newest valid pose fused
         #: MoCap disagreed with the IMU in flight: its poses are no longer fused (latched)
         self.mocap_distrusted = False
+        #: the sum of the UKF's re-seeds on MoCap since arming (m, world): the mission's
+        #: reference moves with them, as an autopilot moves its set-points with an estimator
+        #: reset (a room recalibrated or a marker set swapped mid-flight: the vehicle has not
+        #: moved, its estimate has; chasing the step lurched it 0.5 m at 42 deg)
+        self._ref_offset_w_m: tuple[float, float, float] | None = None
         # UKF checkpoints and the IMU inputs since the oldest, to dead reckon from before a
         # disagreement began (DEAD_RECKON_LOOKBACK_S)
         rate_hz = 1e9 / self.period_ns
@@ -580,7 +586,8 @@ class FlightLoop:
             tick = None
             if directive.reference is ReferenceSource.MISSION:
                 tick = self.computer.step(tm, est_state, alpha, hold_tilt=directive.hold_tilt,
-                                          force_ext_w_n=force_ext)
+                                          force_ext_w_n=force_ext,
+                                          ref_offset_w_m=self._ref_offset_w_m)
             elif directive.reference is ReferenceSource.LAND_HERE and land_here is not None:
                 ref = land_here.reference(t_s, alpha)
                 tick = self.computer.step(tm, est_state, alpha, ref=ref, hold_tilt=True,
@@ -609,7 +616,7 @@ class FlightLoop:
             # fusion (~0.1 ms on a frame tick) stay off the path from IMU sample to command
             if opts.lockstep:
                 self.pose.handle_received()
-            self._take_pose(t0_s)
+            self._take_pose(t0_s, t_s, est_state)
             eta_f = 1.0
             if tick is not None:  # the commanded body force feeds the UKF's force observer
                 force_cmd_b, eta_f = self.computer.thrust_force_b(alpha, tick.cmd.thrusts_n)
@@ -722,9 +729,11 @@ class FlightLoop:
                 return self.imu.wait_next(0.0)
         return None
 
-    def _take_pose(self, t0_s: float) -> None:
+    def _take_pose(self, t0_s: float, t_s: float, est: VehicleState) -> None:
         """Fuse the newest pose if it is a new frame. The UKF replays from the capture time; it
-        needs one IMU sample first (its clock starts with the first prediction)."""
+        needs one IMU sample first (its clock starts with the first prediction). A re-seed
+        from armed on moves the mission's reference by the estimate's step (``est``: this
+        tick's estimate, before it)."""
         pose = self.pose.latest()
         if pose is None or pose.frame_number == self._last_frame:
             return
@@ -736,6 +745,8 @@ class FlightLoop:
             if math.isfinite(self.ukf.t_s) and self.ukf.update_pose(
                     cap_s, pose.pos_w_m, pose.q_wb) is PoseVerdict.RESET:
                 self._reseeds.append(cap_s)  # MoCap refused, then taken as truth
+                if self.sm.state in MOTORS_ON:
+                    self._move_reference(t_s, est.pos_w_m)
             self._last_pose_t_s = cap_s
             self._counters["poses_fused"] += 1
 
@@ -868,6 +879,16 @@ class FlightLoop:
             mocap_consistent=mocap_consistent, servo_detail=servo_detail,
             ended_aloft=ended_aloft, landed_imu=landed_imu,
         )
+
+    def _move_reference(self, t_s: float, before_w_m: tuple[float, float, float]) -> None:
+        """The estimate was re-seeded on MoCap: the mission's reference moves by its step."""
+        after = self.ukf.output_state()[0]
+        step = (after[0] - before_w_m[0], after[1] - before_w_m[1], after[2] - before_w_m[2])
+        o = self._ref_offset_w_m or (0.0, 0.0, 0.0)
+        self._ref_offset_w_m = (o[0] + step[0], o[1] + step[1], o[2] + step[2])
+        self.event_sink(f"{t_s:.3f} s MoCap jumped: the estimate re-seeded on it "
+                        f"{math.hypot(*step):.2f} m away; the mission's reference moved with "
+                        "it ({:+.2f}, {:+.2f}, {:+.2f}) m".format(*step))
 
     def _dead_reckon(self, t_s: float) -> float:
         """The UKF back to its newest checkpoint at least DEAD_RECKON_LOOKBACK_S old (else its

@@ -357,3 +357,24 @@ def test_that_the_emulator_flies_the_vehicle_file_the_session_names_from_any_dir
     assert cfg.vehicle == str(lab / "veh" / "ours.yaml")
     assert states(out)[-1] is FlightState.DISARMED
     assert out.result.end_reason == "mission complete"
+
+
+def test_that_a_mocap_jump_moves_the_reference_not_the_vehicle(tmp_path: Path) -> None:
+    # Fixture: in the hover the MoCap reports the body 0.5 m along x from 5 s on (a room
+    # recalibrated, a marker set swapped); the UKF refuses the poses 25 times, then re-seeds
+    # on them: the estimate steps 0.5 m. Chasing that step flew the vehicle 0.5 m at up to
+    # 42 deg of tilt and 1.7 m/s.
+    events: list[str] = []
+    out = fly(tmp_path, faults="mocap-jump@5:0.5", on_event=events.append)
+    # Assert: the reference moved with the estimate (said in an event); the vehicle stayed put,
+    # level, and landed where it took off (truth)
+    jumped = [e for e in events if "MoCap jumped: the estimate re-seeded on it" in e]
+    assert len(jumped) == 1 and "0.50 m away" in jumped[0] and "(+0.50, " in jumped[0]
+    assert states(out)[-1] is FlightState.DISARMED and out.result.faults == []
+    rows = read_record(out.record_path).rows
+    q = rows["q_wb"]
+    tilt_deg = np.degrees(np.arccos(np.clip(1 - 2 * (q[:, 1] ** 2 + q[:, 2] ** 2), -1, 1)))
+    assert tilt_deg.max() < 5.0                       # a hover's, not a lurch's
+    xy = rows["pos_w_m"][:, :2]
+    assert np.abs(xy - xy[0]).max() < 0.05
+    assert math.dist(xy[-1], (0.1, -0.1)) < 0.02      # the mission's start, in truth
