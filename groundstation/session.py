@@ -83,6 +83,9 @@ class SessionOutcome:
     dashboard_mode: str = "off"
     #: the dashboard's .rrd file, if one was written
     dashboard_file: Path | None = None
+    #: the emulated vehicle's truth at the end (empty on hardware): ``touchdown_speeds_m_s``,
+    #: ``landed``, ``height_m`` (``EmulatedVehicleBackend.truth_at_exit``)
+    truth: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -139,6 +142,9 @@ class EmulatorProcess:
         self.realtime_settings = ""  # what the emulator's real-time settings came to
         #: the emulated board's counters when it stopped (``EmulatorStats`` fields)
         self.exit_stats: dict[str, int] = {}
+        #: the emulated vehicle's truth when it stopped (``EmulatedVehicleBackend
+        #: .truth_at_exit``): touchdown speeds, landed, height
+        self.exit_truth: dict[str, Any] = {}
         deadline = time.monotonic() + 60.0
         assert self.proc.stdout is not None
         while time.monotonic() < deadline:
@@ -187,8 +193,10 @@ class EmulatorProcess:
             with contextlib.suppress(OSError, ValueError):
                 assert self.proc.stdout is not None
                 for line in self.proc.stdout.read().splitlines():
-                    with contextlib.suppress(ValueError, AttributeError):
-                        self.exit_stats = dict(json.loads(line)["exit"])
+                    with contextlib.suppress(ValueError, AttributeError, KeyError, TypeError):
+                        msg = json.loads(line)
+                        self.exit_stats = dict(msg["exit"])
+                        self.exit_truth = dict(msg.get("truth") or {})
 
 
 def _telemetry_main(ring_name: str, record_path: str, metadata: dict[str, Any],
@@ -418,6 +426,7 @@ class FlightSession:
         status: Any = ctx.Array("d", STATUS_SIZE, lock=False)
         commands: Any = ctx.Queue(maxsize=100)
         wall0 = time.perf_counter()
+        outcome: SessionOutcome | None = None
         on_event = self.on_event
         own_console = None
         if on_event is None and self.echo_events:
@@ -618,10 +627,11 @@ class FlightSession:
             with contextlib.suppress(queue.Full):
                 events.put_nowait(f"session ended: {result.end_reason}")
             rrd = self.record_path.with_suffix(".rrd")
-            return SessionOutcome(result, self.record_path, self.events_path,
-                                  loop.preflight_report, settings,
-                                  time.perf_counter() - wall0, dashboard_mode,
-                                  rrd if dashboard_mode != "off" and rrd.exists() else None)
+            outcome = SessionOutcome(result, self.record_path, self.events_path,
+                                     loop.preflight_report, settings,
+                                     time.perf_counter() - wall0, dashboard_mode,
+                                     rrd if dashboard_mode != "off" and rrd.exists() else None)
+            return outcome
         finally:
             if fc is not None:
                 with contextlib.suppress(Exception):
@@ -649,6 +659,8 @@ class FlightSession:
             if self.emulator is not None:
                 self.emulator.close()
                 self._note_emulator_stats()
+                if outcome is not None:  # the truth of the flight, for its verdict
+                    outcome.truth.update(self.emulator.exit_truth)
                 if lockstep and truth_path is not None and truth_path.exists():
                     with contextlib.suppress(Exception):
                         merge_truth(self.record_path, truth_path, backend.imu_rate_hz)

@@ -100,6 +100,14 @@ def summary_text(summary: dict[str, Any], *, clock: str = "realtime",
     title = f"Flight summary: {s['session']}"
     lines = [title, "=" * len(title)]
     lines.append(f"session ended: {s['end_reason']}")
+    if "truth_touchdowns" in s:  # the emulated vehicle's truth
+        n, fastest = int(s["truth_touchdowns"]), float(s["truth_touchdown_max_m_s"])
+        where = "on the ground" if s["truth_landed"] else f"{s['truth_height_m']:.2f} m up"
+        told = (f"{n} touchdown{'s' if n != 1 else ''}, the fastest at {fastest:.2f} m/s"
+                if n else "no touchdown")
+        lines.append(f"truth:         {told}; {where} at the end (the emulated vehicle)")
+        if s.get("truth_crash"):
+            lines.append(f"CRASH:         {s['truth_crash']}")
     lines.append(f"flown:         {flight_s:.1f} s of flight in {wall_s:.1f} s wall{speed}")
     # the ticks are the whole session's (preflight and arming too), not the flight's
     lines.append(f"loop:          {ticks} ticks in all ({ticks / rate_hz:.1f} s at "

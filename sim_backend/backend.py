@@ -357,6 +357,29 @@ class EmulatedVehicleBackend:
         # fc-disconnect: from the Flight-Ctrl's own thread, which is advancing the physics
         return lambda: threading.Thread(target=self.flight_ctrl.disconnect, daemon=True).start()
 
+    def truth_at_exit(self) -> dict[str, object]:
+        """What only the emulator knows of the flight, for the ground station's verdict: the
+        vertical speed of every touchdown (m/s), whether the vehicle rests on the ground, and
+        the height of its reference point above its resting height (m)."""
+        from sim_backend.closed_loop import SAFE_TOUCHDOWN_SPEED_M_S
+
+        sim = self.sim
+        speeds = [round(v, 4) for v in sim.touchdown_speeds_m_s]
+        height_m = round(sim.true_pose().pos_w_m[2] - sim.ground_height_m, 4)  # as reported
+        crash = ""
+        fastest = max(speeds, default=0.0)
+        if fastest > SAFE_TOUCHDOWN_SPEED_M_S:
+            crash = (f"a touchdown at {fastest:.2f} m/s (a safe one is <= "
+                     f"{SAFE_TOUCHDOWN_SPEED_M_S:g} m/s)")
+        # the motors are off by now: a vehicle still up falls (the session ended above ground)
+        fall_m_s = math.sqrt(2.0 * sim.params.gravity_m_s2 * max(height_m, 0.0))
+        if not sim.landed and fall_m_s > SAFE_TOUCHDOWN_SPEED_M_S:
+            crash = (crash + "; " if crash else "") + (
+                f"the session ended {height_m:.2f} m up with the motors stopped: a fall, "
+                f">= {fall_m_s:.1f} m/s at the ground")
+        return {"touchdown_speeds_m_s": speeds, "landed": sim.landed,
+                "height_m": height_m, "crash": crash}
+
     def start(self) -> list[DeviceAddress]:
         self.mocap.start(realtime=False)
         self.servo.start()
@@ -513,8 +536,8 @@ def main(argv: list[str] | None = None) -> int:
         # the board's counters, for the ground station's events (stream slips: the emulator
         # fell behind its own clock; watchdog trips: no `w` for the watchdog time)
         with contextlib.suppress(Exception):
-            print(json.dumps({"exit": dataclasses.asdict(backend.flight_ctrl.stats())}),
-                  flush=True)
+            print(json.dumps({"exit": dataclasses.asdict(backend.flight_ctrl.stats()),
+                              "truth": backend.truth_at_exit()}), flush=True)
     return 0
 
 

@@ -187,7 +187,9 @@ def _fly(args: argparse.Namespace, signals: StopSignals) -> int:
         pass
     planned = summary["end_reason"] in ("touchdown", "mission complete") or (
         args.props_off and summary["end_reason"].startswith("props-off bench test complete"))
-    return 0 if planned else 1
+    # an emulated flight that ended "normally" may still have come down hard (a rotor lost):
+    # its truth says so
+    return 0 if planned and not summary.get("truth_crash") else 1
 
 
 def record_path(cli: str | None, configured: str, session_file: Path, session: str) -> Path:
@@ -266,6 +268,14 @@ def flight_summary(outcome: Any, params: Any, session: str) -> dict[str, Any]:
         "record": str(outcome.record_path),
         "preflight": [{"check": n, "pass": ok, "value": v} for n, ok, v in outcome.preflight],
     }
+    truth = getattr(outcome, "truth", None) or {}
+    if truth:  # the emulated vehicle's own account (no such thing on hardware)
+        speeds = truth.get("touchdown_speeds_m_s") or []
+        out["truth_touchdowns"] = len(speeds)
+        out["truth_touchdown_max_m_s"] = max(speeds, default=0.0)
+        out["truth_landed"] = bool(truth.get("landed"))
+        out["truth_height_m"] = float(truth.get("height_m", 0.0))
+        out["truth_crash"] = str(truth.get("crash", ""))
     from groundstation.gcs import summary_fields
 
     out.update(summary_fields(outcome.record_path))  # mavlink_*: the link's counters, if on

@@ -185,3 +185,38 @@ def test_that_the_status_line_shows_the_time_since_take_off(tmp_path: Path) -> N
     assert m is not None, during
     # written within the last 50 ticks (0.1 s) before the transition, counted from take-off
     assert mission_s - takeoff_s - 0.15 <= float(m.group(1)) <= mission_s - takeoff_s, during
+
+
+def test_that_an_emulated_flight_that_crashed_exits_1_with_the_truths_account(
+        tmp_path: Path) -> None:
+    # Fixture: the planned landing with every rotor at half thrust from 0.5 s into it (the
+    # vehicle comes down at 1.3 m/s, touches down, and the session ends "normally": it exited
+    # 0), and the Flight-Ctrl cable pulled in the hover (the motors stop 0.7 m up; that the
+    # vehicle then fell only the emulated vehicle knows)
+    session = _session(tmp_path)
+    text = session.read_text()
+    assert "faults: []" in text
+
+    def fly(faults: str, *extra: str) -> subprocess.CompletedProcess[str]:
+        session.write_text(text.replace("faults: []", f'faults: ["{faults}"]'))
+        return subprocess.run([sys.executable, "-m", "groundstation", "fly", str(session),
+                               "--record", str(tmp_path / "crash.fhr"), *extra],
+                              capture_output=True, text=True, timeout=120)
+
+    # Test
+    hard = fly("rotor-thrust@7.5:0.5")
+    fall = fly("fc-disconnect@5", "--json")
+    # Assert: exit 1 both; the hard landing's summary says the session ended normally, then
+    # the truth and the CRASH
+    assert hard.returncode == 1, hard.stderr
+    words = " ".join(hard.stdout.split())   # the summary wraps at 79 columns
+    assert " session ended: touchdown " in words or " session ended: mission complete " in words
+    assert re.search(r" CRASH: a touchdown at 1\.\d\d m/s \(a safe one is <= 1 m/s\) ", words), \
+        hard.stdout
+    assert fall.returncode == 1
+    summary = json.loads(fall.stdout)
+    assert summary["truth_landed"] is False and summary["truth_height_m"] > 0.5
+    assert summary["truth_touchdowns"] == 0
+    assert summary["truth_crash"].startswith(
+        f"the session ended {summary['truth_height_m']:.2f} m up with the motors stopped: a "
+        "fall")

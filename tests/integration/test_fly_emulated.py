@@ -21,7 +21,7 @@ from flight_support import can_hold_cpu_latency as can_request
 from flight_support import open_cpu_latency_requests as open_requests
 
 from config import find_config
-from controller.missions import Mission
+from controller.missions import MAX_TOUCHDOWN_SPEED_M_S, Mission
 from groundstation.configs import load_mission, load_vehicle
 from groundstation.flight import FlightState
 from groundstation.record import read_record
@@ -59,6 +59,9 @@ def test_that_a_short_flight_is_flown_landed_and_recorded(tmp_path: Path) -> Non
     assert math.degrees(measured["alpha_rad"].max()) == pytest.approx(10.0, abs=0.3)
     events = out.events_path.read_text()
     assert "PREFLIGHT -> ARMED" in events and "LANDING -> DISARMED: touchdown" in events
+    # the emulated vehicle's own account: down gently, resting on its gear, no crash
+    assert out.truth["landed"] and out.truth["crash"] == ""
+    assert 0.05 < max(out.truth["touchdown_speeds_m_s"]) < MAX_TOUCHDOWN_SPEED_M_S
     # the operator reads the check table once, when it passes, just before arming
     assert events.count(" preflight PASS: ") == 6 and " preflight FAIL: " not in events
 
@@ -117,6 +120,13 @@ def test_that_a_cut_serial_link_stops_the_motors_and_ends_the_session(tmp_path: 
     # nothing lost: the record runs up to the cut
     rec = read_record(out.record_path)
     assert rec.rows["t_s"][-1] == pytest.approx(5.996, abs=0.01)
+    # the truth says what the cut means: the vehicle was left in the air with its motors off
+    up_m = float(rec.rows["pos_w_m"][-1][2]) - 0.1
+    assert not out.truth["landed"] and out.truth["height_m"] == pytest.approx(up_m, abs=0.01)
+    assert out.truth["crash"] == (f"the session ended {out.truth['height_m']:.2f} m up with "
+                                  "the motors stopped: a fall, >= "
+                                  f"{math.sqrt(2 * 9.81 * out.truth['height_m']):.1f} m/s at "
+                                  "the ground")
 
 
 def test_that_half_a_percent_byte_corruption_does_not_stop_the_flight(tmp_path: Path) -> None:
