@@ -68,10 +68,11 @@ S_MOMENTS = 83      # 6 x 3: arm moment + drag torque per unit thrust (about the
 S_C_F = 101         # 6: actual thrust coefficients (N/Hz^2)
 S_IMPULSE = 107     # 3: a touchdown's velocity change the accelerometer has still to feel (world)
 S_IMPULSE_RATE = 110  # 3: ... and how fast it feels it (m/s^2, world)
-S_ROT_IMPULSE = 113  # 3: the rotation to level a touchdown made that the gyro has still to feel
-S_ROT_RATE = 116    # 3: ... and how fast it feels it (rad/s, body)
-S_GYRO_FELT = 119   # 3: what the gyro reads on top of the body rate in this sample (rad/s)
-N_STATE = 122
+S_ROT_IMPULSE = 113  # 3: the rotation to level a touchdown made, for the gyro to feel (body)
+S_ROT_T = 116       # time since that touchdown (s): the gyro feels it over LEVEL_S
+S_GYRO_FELT = 117   # 3: what the gyro reads on top of the body rate in this sample (rad/s)
+S_ROT_FELT = 120    # the share of S_ROT_IMPULSE felt so far (0..1)
+N_STATE = 121
 
 #: a touchdown stops the body and levels it within one step (the contact is a clamp), but its
 #: gear takes about this long: the accelerometer feels the stop and the gyro the levelling
@@ -79,6 +80,10 @@ N_STATE = 122
 #: ground, level, too; 0.12 m/s: 6 m/s^2 for 20 ms; a crash's peak is clipped by the sensor's
 #: range, as a real one's is)
 CONTACT_S = 0.02
+#: ... and it rocks level over this long, the rate rising and falling linearly (a triangle:
+#: no step in the gyro, whose driver drops a sample that changes by more than 0.25 rad/s as a
+#: corrupted byte; a 5 deg levelling peaks at 0.9 rad/s and changes by 0.02 rad/s per 2 ms)
+LEVEL_S = 0.2
 
 # -- the constants ----------------------------------------------------------------------------
 P_M = 0             # mass (kg)
@@ -387,11 +392,12 @@ def _substep(s: FloatArray, p: FloatArray, h: float, normals: FloatArray, k_norm
             dw, dx, dy, dz = -dw, -dx, -dy, -dz
         nv = math.sqrt(dx * dx + dy * dy + dz * dz)
         to_angle = 2.0 * math.atan2(nv, dw) / nv if nv > 1e-15 else 2.0
-        s[S_ROT_IMPULSE] += to_angle * dx
-        s[S_ROT_IMPULSE + 1] += to_angle * dy
-        s[S_ROT_IMPULSE + 2] += to_angle * dz
-        for j in range(3):
-            s[S_ROT_RATE + j] = s[S_ROT_IMPULSE + j] / CONTACT_S
+        left = 1.0 - s[S_ROT_FELT]   # of a levelling still under way (a hop), then this one
+        s[S_ROT_IMPULSE] = left * s[S_ROT_IMPULSE] + to_angle * dx
+        s[S_ROT_IMPULSE + 1] = left * s[S_ROT_IMPULSE + 1] + to_angle * dy
+        s[S_ROT_IMPULSE + 2] = left * s[S_ROT_IMPULSE + 2] + to_angle * dz
+        s[S_ROT_T] = 0.0
+        s[S_ROT_FELT] = 0.0
         x[3] = x[4] = x[5] = 0.0
         x[6], x[7], x[8], x[9] = yw, 0.0, 0.0, yz_
         x[10] = x[11] = x[12] = 0.0
@@ -462,8 +468,7 @@ def advance(s: FloatArray, p: FloatArray, h: float, n: int, normals: FloatArray,
     specific_force(s, p)
     s[S_GYRO_FELT] = s[S_GYRO_FELT + 1] = s[S_GYRO_FELT + 2] = 0.0
     if s[S_IMPULSE] != 0.0 or s[S_IMPULSE + 1] != 0.0 or s[S_IMPULSE + 2] != 0.0 \
-            or s[S_ROT_IMPULSE] != 0.0 or s[S_ROT_IMPULSE + 1] != 0.0 \
-            or s[S_ROT_IMPULSE + 2] != 0.0:
+            or s[S_ROT_FELT] < 1.0:
         _feel_contact(s, n * h)
     return events
 
@@ -472,7 +477,7 @@ def advance(s: FloatArray, p: FloatArray, h: float, n: int, normals: FloatArray,
 def _feel_contact(s: FloatArray, dt: float) -> None:
     """Add to the specific force of this ``dt`` the part of a touchdown's velocity change felt
     in it (``S_IMPULSE`` at ``S_IMPULSE_RATE``, see :data:`CONTACT_S`), and set the gyro's
-    share of the levelling (``S_GYRO_FELT`` from ``S_ROT_IMPULSE``)."""
+    share of the levelling (``S_GYRO_FELT`` from ``S_ROT_IMPULSE``, see :data:`LEVEL_S`)."""
     a = np.zeros(3)
     for j in range(3):
         rem = s[S_IMPULSE + j]
@@ -481,12 +486,16 @@ def _feel_contact(s: FloatArray, dt: float) -> None:
             use = rem
         s[S_IMPULSE + j] = rem - use
         a[j] = use / dt
-        rem = s[S_ROT_IMPULSE + j]
-        use = s[S_ROT_RATE + j] * dt
-        if abs(use) >= abs(rem):
-            use = rem
-        s[S_ROT_IMPULSE + j] = rem - use
-        s[S_GYRO_FELT + j] = use / dt
+    if s[S_ROT_FELT] < 1.0:
+        # the triangle's share between t and t + dt: F(u) = 2 u^2 (u <= 1/2), 1 - 2 (1 - u)^2
+        t1 = s[S_ROT_T] + dt
+        s[S_ROT_T] = t1
+        u = min(t1 / LEVEL_S, 1.0)
+        felt = 2.0 * u * u if u <= 0.5 else 1.0 - 2.0 * (1.0 - u) * (1.0 - u)
+        share = felt - s[S_ROT_FELT]
+        s[S_ROT_FELT] = felt
+        for j in range(3):
+            s[S_GYRO_FELT + j] = s[S_ROT_IMPULSE + j] * share / dt
     qw, qx, qy, qz = s[S_X + 6], s[S_X + 7], s[S_X + 8], s[S_X + 9]
     xx, yy, zz = qx * qx, qy * qy, qz * qz
     xy, xz, yz = qx * qy, qx * qz, qy * qz

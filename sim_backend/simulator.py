@@ -176,6 +176,7 @@ class FastHexSimulator:
             start_pos_w_m[0] + rc[0], start_pos_w_m[1] + rc[1], self.ground_height_m + rc[2],
             0.0, 0.0, 0.0, q0[0], q0[1], q0[2], q0[3], 0.0, 0.0, 0.0]
         st[phy.S_LANDED] = 1.0
+        st[phy.S_ROT_FELT] = 1.0   # no touchdown's levelling to feel
         st[phy.S_C_F:phy.S_C_F + N_ROTORS] = c_f_actual
         # a fixed-tilt airframe (min = max tilt, rate 0) is built at its tilt
         st[phy.S_SERVO] = st[phy.S_SERVO_GOAL] = math.radians(params.tilt.min_tilt_deg)
