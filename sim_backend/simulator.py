@@ -177,6 +177,7 @@ class FastHexSimulator:
             0.0, 0.0, 0.0, q0[0], q0[1], q0[2], q0[3], 0.0, 0.0, 0.0]
         st[phy.S_LANDED] = 1.0
         st[phy.S_ROT_FELT] = 1.0   # no touchdown's levelling to feel
+        self._felt_last = False     # the previous IMU sample still felt a levelling
         st[phy.S_C_F:phy.S_C_F + N_ROTORS] = c_f_actual
         # a fixed-tilt airframe (min = max tilt, rate 0) is built at its tilt
         st[phy.S_SERVO] = st[phy.S_SERVO_GOAL] = math.radians(params.tilt.min_tilt_deg)
@@ -375,10 +376,12 @@ class FastHexSimulator:
         v = self._r
         w = phy.S_X + 10
         omega = (v[w], v[w + 1], v[w + 2])
-        felt = self._s[phy.S_GYRO_FELT:phy.S_GYRO_FELT + 3]
-        if felt.any():   # a touchdown's levelling, felt by the gyro (physics.CONTACT_S)
-            omega = (omega[0] + float(felt[0]), omega[1] + float(felt[1]),
-                     omega[2] + float(felt[2]))
+        if self._s.item(phy.S_ROT_FELT) < 1.0 or self._felt_last:
+            # a touchdown's levelling, felt by the gyro (physics.LEVEL_S); the sample that
+            # completes it carries a share too
+            f = self._s[phy.S_GYRO_FELT:phy.S_GYRO_FELT + 3].tolist()
+            self._felt_last = self._s.item(phy.S_ROT_FELT) < 1.0
+            omega = (omega[0] + f[0], omega[1] + f[1], omega[2] + f[2])
         return self.imu.sample(self._t, omega,
                                (v[phy.S_SPECIFIC], v[phy.S_SPECIFIC + 1], v[phy.S_SPECIFIC + 2]))
 
