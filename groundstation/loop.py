@@ -125,7 +125,8 @@ TAKEOFF_STEADY_M_S = 0.1
 TAKEOFF_STEADY_S = 0.3
 #: MoCap inconsistent with the IMU: this many UKF re-seeds within this window
 RESEEDS_INCONSISTENT = 3
-RESEED_WINDOW_S = 1.0
+RESEED_WINDOW_S = 1.0   # (2-3 s caught a tracker frozen late in a climb sooner, but also
+#                         took the re-seeds of 0.5 % byte corruption on the IMU link for it)
 #: MoCap found inconsistent in flight is not fused again (a frozen or wrong tracker pins the
 #: estimate where it says, however the vehicle moves): the landing that follows runs on the
 #: IMU alone, its reference sinking this far below the ground so that only the IMU's
@@ -134,9 +135,19 @@ BLIND_SINK_M = 1.0
 #: ... and the estimate goes back this far (the UKF checkpointed every CHECKPOINT_EVERY_S)
 #: and runs on the IMU alone from there: a tracker that froze still streams poses the UKF
 #: fuses until they disagree too much, pulling the estimate's velocity to zero and its
-#: accelerometer bias off (seen: 0.8 s from a freeze to the failsafe in a climb, 1.9-3.2 s in
-#: a hover); dead reckoned from before, a landing 4-8 s later is still within centimetres
+#: accelerometer bias off (seen: 0.7-1.3 s from a freeze to the failsafe in a climb, 1.4-2.5 s
+#: in a hover); dead reckoned from before, a landing 4-8 s later is within centimetres
+#: vertically (going back to before the first re-seed instead dead reckoned longer: more
+#: drift, a vehicle rocking 25 deg on its gear)
 DEAD_RECKON_LOOKBACK_S = 3.0
+#: a blind landing's reference this far under the ground: below BLIND_THRUST_FRACTION of
+#: the weight, the IMU held still within BLIND_STILL_ACCEL_M_S2 of g for IMU_LANDED_S is a
+#: touchdown (in the air that thrust reads 0.1 g short of g). A dead reckoning drifting on
+#: the ground kept the thrust at 0.75-0.9 of the weight, above the 0.6 of the plain rule,
+#: the controller chasing it until the vehicle flipped.
+BLIND_STILL_SUNK_M = 0.3
+BLIND_THRUST_FRACTION = 0.9
+BLIND_STILL_ACCEL_M_S2 = 0.5
 CHECKPOINT_EVERY_S = 0.5
 CHECKPOINT_PHASE = 7  # the tick in each period: not one of the servo's or the link check's
 #: ticks between two evaluations of the preflight checks (0.1 s at 500 Hz)
@@ -240,6 +251,7 @@ class FlightLoop:
         self.record_lost: Callable[[], str | None] | None = None
         self.period_ns = round(1e9 / options.imu_rate_hz)
         self._low_thrust_n = IMU_LOW_THRUST_FRACTION * params.mass_kg * params.gravity_m_s2
+        self._blind_thrust_n = BLIND_THRUST_FRACTION * params.mass_kg * params.gravity_m_s2
         self.timer = LoopTimer(1.0 / options.imu_rate_hz)
         #: operator requests from other threads (signal handler, MAVLink): deque is atomic
         self.requests: collections.deque[Literal["arm", "land", "stop", "cut", "disarm"]] = \
@@ -534,9 +546,16 @@ class FlightLoop:
             near_ground = self._near_ground(est_state)
             ground_since_s = (ground_since_s or t_s) if near_ground else None
             # the IMU's own touchdown, whatever the estimate says (a frozen or drifting one
-            # never comes near the ground): at low thrust, held still (the ground carries it)
-            if sm.state is FlightState.LANDING and tick is not None and \
-                    force_cmd_b[2] < self._low_thrust_n and self._imu_still(imu):
+            # never comes near the ground): at low thrust, held still (the ground carries it);
+            # a blind landing also once its reference is BLIND_STILL_SUNK_M under the ground
+            # (a dead reckoning drifting on the ground kept the thrust up: the controller
+            # chased it until the vehicle flipped)
+            if sm.state is FlightState.LANDING and tick is not None and (
+                    (force_cmd_b[2] < self._low_thrust_n and self._imu_still(imu))
+                    or (self.mocap_distrusted and tick.ref.segment == -1
+                        and tick.ref.pos_w_m[2] < opts.ground_z_m - BLIND_STILL_SUNK_M
+                        and force_cmd_b[2] < self._blind_thrust_n
+                        and self._imu_still(imu, BLIND_STILL_ACCEL_M_S2))):
                 still_since_s = t_s if still_since_s is None else still_since_s
             else:
                 still_since_s = None
@@ -847,13 +866,13 @@ class FlightLoop:
             return "takeoff"
         return "mission" if tm < end else "land"
 
-    def _imu_still(self, imu: Any) -> bool:
+    def _imu_still(self, imu: Any, accel_tol_m_s2: float = IMU_STILL_ACCEL_M_S2) -> bool:
         """This IMU sample reads a vehicle at rest: its specific force is g (within
-        IMU_STILL_ACCEL_M_S2), its rates are small."""
+        ``accel_tol_m_s2``), its rates are small."""
         ax, ay, az = imu.accel_m_s2
         gx, gy, gz = imu.gyro_rad_s
         g = self.params.gravity_m_s2
-        return (abs(math.sqrt(ax * ax + ay * ay + az * az) - g) < IMU_STILL_ACCEL_M_S2
+        return (abs(math.sqrt(ax * ax + ay * ay + az * az) - g) < accel_tol_m_s2
                 and abs(gx) < IMU_STILL_RATE_RAD_S and abs(gy) < IMU_STILL_RATE_RAD_S
                 and abs(gz) < IMU_STILL_RATE_RAD_S)
 
