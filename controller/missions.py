@@ -485,7 +485,8 @@ def check_ends_on_ground(spec_: MissionSpec) -> None:
                                           strict=True)):
         if isinstance(seg, TakeoffSegment):
             on_ground = False
-        elif isinstance(seg, LandSegment):
+            continue   # it climbs from where it rests (after a land: its sink_m under)
+        if isinstance(seg, LandSegment):
             on_ground = True
             continue
         if on_ground and isinstance(seg, HoldSegment):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
 
@@ -257,3 +258,18 @@ def test_that_every_shipped_mission_touches_down_gently() -> None:
                 fastest = max(fastest, -ref.vel_w_m_s[2])
             t += 1e-3
         assert 0.0 < fastest <= MAX_TOUCHDOWN_SPEED_M_S, (name, fastest)
+
+
+def test_that_a_touch_and_go_is_not_taken_for_a_reference_below_the_ground(
+        tmp_path: Path) -> None:
+    # Fixture: land, then take off again: the second take-off starts where the first landing
+    # rests, its sink_m (5 cm) under the start height; the below-ground check refused it
+    path = tmp_path / "touch-and-go.yaml"
+    path.write_text(f"schema: {MISSION_SCHEMA}\nversion: 1\nname: t\n"
+                    "start_pos_w_m: [0.0, 0.0, 0.1]\nsegments:\n"
+                    + "  - {kind: takeoff, duration_s: 3.0, height_m: 0.8}\n"
+                      "  - {kind: hold, duration_s: 2.0}\n"
+                      "  - {kind: land, duration_s: 4.0}\n" * 2)
+    # Test / Assert: it loads, and both take-offs fly
+    m = Mission(load_mission(path))
+    assert m.reference(9.0 + 3.0).pos_w_m[2] == pytest.approx(0.8, abs=1e-6)
