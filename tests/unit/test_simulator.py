@@ -77,15 +77,21 @@ def test_that_the_per_propeller_wrench_equals_the_allocation_model(alpha_deg: fl
                                    rel=1e-3, abs=1e-3)
 
 
-def test_that_it_lifts_off_climbs_and_lands_at_rest() -> None:
-    # Fixture
+def _climbed_then_descending() -> tuple[FastHexSimulator, float]:
+    """In the air: 3 % more thrust than hover for 1 s, then 5 % less (it comes down); the
+    simulator and the height reached (m)."""
     sut = FastHexSimulator(PARAMS, IDEAL)
     hover = _hover_spins(0.0)
-    # Test: 3 % more thrust than hover for 1 s, then 10 % less until it lands
     sut.command_rotor_speeds_hz([w * 1.015 for w in hover])
     sut.advance(1.0)
     climbed = sut.true_pose().pos_w_m[2]
     sut.command_rotor_speeds_hz([w * 0.95 for w in hover])
+    return sut, climbed
+
+
+def test_that_it_lifts_off_climbs_and_lands_at_rest() -> None:
+    # Test: 3 % more thrust than hover for 1 s, then less until it lands
+    sut, climbed = _climbed_then_descending()
     for _ in range(500):
         sut.advance(0.01)
         if sut.landed:
@@ -100,12 +106,8 @@ def test_that_it_lifts_off_climbs_and_lands_at_rest() -> None:
 
 def test_that_the_accelerometer_feels_the_touchdown_that_stops_the_body() -> None:
     # Fixture: the climb and descent above, sampled as the IMU is (2 ms)
-    sut = FastHexSimulator(PARAMS, IDEAL)
-    hover = _hover_spins(0.0)
-    sut.command_rotor_speeds_hz([w * 1.015 for w in hover])
-    sut.advance(1.0)
+    sut, _ = _climbed_then_descending()
     v_climb = sut.state().vel_w_m_s[2]
-    sut.command_rotor_speeds_hz([w * 0.95 for w in hover])
     dt, g = 0.002, PARAMS.gravity_m_s2
     felt = []   # the vertical acceleration the accelerometer reads (level flight: body z)
     landed_at = None
@@ -131,11 +133,7 @@ def test_that_the_gyro_feels_the_touchdown_that_levels_the_body() -> None:
     # down tilted; the contact levels it at once, which the gyro must read as a real gear's
     # levelling (the rate spread over CONTACT_S): a dead reckoning kept the tilt, and g times
     # that tilt drove its horizontal estimate away on the ground (0.7 m in 2.6 s)
-    sut = FastHexSimulator(PARAMS, IDEAL)
-    hover = _hover_spins(0.0)
-    sut.command_rotor_speeds_hz([w * 1.015 for w in hover])
-    sut.advance(1.0)
-    sut.command_rotor_speeds_hz([w * 0.95 for w in hover])
+    sut, _ = _climbed_then_descending()
     sut.advance(0.3)
     sut.kick_body_rate((0.3, 0.0, 0.0))
     q = np.array(sut.state().q_wb, dtype=float)   # attitude dead reckoned on the gyro
