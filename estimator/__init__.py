@@ -6,7 +6,7 @@
 
 from .config import EstimatorConfig
 from .types import EstimatorHealth, HealthFlag, StateEstimate
-from .ukf import PoseVerdict, Ukf
+from .ukf import PoseVerdict, ResetInfo, Ukf
 
-__all__ = ["EstimatorConfig", "EstimatorHealth", "HealthFlag", "PoseVerdict", "StateEstimate",
-           "Ukf"]
+__all__ = ["EstimatorConfig", "EstimatorHealth", "HealthFlag", "PoseVerdict", "ResetInfo",
+           "StateEstimate", "Ukf"]

@@ -47,6 +47,7 @@ like an external pull; both are what the controller's ``force_feedforward`` shou
 
 from __future__ import annotations
 
+import collections
 import copy
 import enum
 import math
@@ -106,6 +107,37 @@ the next ticks anyway. With a window under 8 poses the horizon is the smallest l
 #: :meth:`Ukf.dead_reckon_from` takes a bias from now where the checkpoint's variance of it was
 #: this many times larger (4: twice the sigma; seen: 5x the sigma at arming, 1.1x later on)
 BIAS_UNSETTLED_VAR_RATIO = 4.0
+#: a re-seed (poses refused too often in a row) takes the velocity from MoCap too when the IMU
+#: was seen failing (:meth:`Ukf.note_imu_anomaly`) since this long before the first refused
+#: pose: the refusals then come from motion the IMU missed (an impact beyond the I frame's
+#: range: seen, a 1.05 m/s touchdown left 0.53 m/s in the estimate, and a re-seed that kept
+#: it refused the next poses at once, three times in 0.6 s)
+IMU_ANOMALY_MARGIN_S = 0.3
+#: the MoCap velocity at a re-seed: the slope of the refused poses of this last stretch (10
+#: poses at 100 Hz: about 1 cm/s of noise at 0.5 mm per pose); at least 3 poses
+RESEED_VELOCITY_WINDOW_S = 0.1
+
+
+class ResetInfo(NamedTuple):
+    """What the last re-seed from MoCap saw (:attr:`Ukf.last_reset`)."""
+
+    t_s: float
+    """Capture time of the pose it re-seeded on."""
+    streak_start_s: float
+    """Capture time of the first refused pose of the run that ended in it."""
+    vel_est_w_m_s: Vec3Tuple
+    """The filter's velocity just before (the IMU's account of the motion)."""
+    vel_mocap_w_m_s: Vec3Tuple | None
+    """The refused poses' velocity (:data:`RESEED_VELOCITY_WINDOW_S`); None: too few poses."""
+    imu_suspect: bool
+    """The IMU was seen failing around the refusals: the velocity was taken from MoCap."""
+
+    @property
+    def velocity_gap_m_s(self) -> float:
+        """How far the IMU's and the MoCap's velocities differ (NaN without a MoCap one)."""
+        if self.vel_mocap_w_m_s is None:
+            return math.nan
+        return math.dist(self.vel_est_w_m_s, self.vel_mocap_w_m_s)
 
 
 class UkfCheckpoint(NamedTuple):
@@ -124,7 +156,7 @@ _CHECKPOINT_SKIP = frozenset({
     "_hist_t", "_hist_x", "_hist_P", "_hist_q", "_hist_gyro", "_hist_accel", "_steps_py",
     "_fobs_const", "_noise_rates", "_horizon_rank", "_rest", "_accepted", "_rejected",
     "_too_old", "_resets", "_repairs", "_imu_out_of_order", "_imu_invalid", "_poses_invalid",
-    "_last_nis"})
+    "_last_nis", "_refused", "last_reset", "_imu_anomaly_t_s"})
 
 
 class PoseVerdict(enum.Enum):
@@ -393,6 +425,13 @@ class Ukf:
         self._accepted = 0
         self._rejected = 0
         self._consecutive = 0
+        #: the refused poses of the current run of refusals: (capture time, x, y, z)
+        self._refused: collections.deque[tuple[float, float, float, float]] = \
+            collections.deque(maxlen=1024)
+        #: newest time the IMU was seen failing (note_imu_anomaly)
+        self._imu_anomaly_t_s = -math.inf
+        #: the newest re-seed from refused poses, None before the first
+        self.last_reset: ResetInfo | None = None
         self._too_old = 0
         self._resets = 0
         self._repairs = 0
@@ -860,7 +899,7 @@ class Ukf:
             pos, q_m = self._shift_pose(pos, q_m, self._t_s - t_c, self._x, self._hist_head)
         fused = self._fuse(self._x, self._P, self._q_ref, pos, q_m)
         if fused is None:
-            return self._rejected_pose(pos, q_m)
+            return self._rejected_pose(pos, q_m, t_c)
         self._x, self._P, self._q_ref = fused
         self._write_history(self._hist_head)
         self._correct_outputs(p_r, v_r, q_r, self._t_s)
@@ -1001,7 +1040,7 @@ class Ukf:
         pos, q_m = self._shift_pose(pos, q_m, float(self._hist_t[j]) - t_c, x, j)
         fused = self._fuse(x, P, q, pos, q_m)
         if fused is None:
-            return self._rejected_pose(pos, q_m)
+            return self._rejected_pose(pos, q_m, t_c)
         x, P, q = fused
         self._store(x, P, q, (self._hist_head - k) % n_hist)
         while k > 0:
@@ -1043,7 +1082,7 @@ class Ukf:
         self._last_nis = nis
         if status == 2:
             out = self._pose_out
-            return self._rejected_pose(out[0:3].copy(), out[3:7].copy())
+            return self._rejected_pose(out[0:3].copy(), out[3:7].copy(), t_c)
         if self._pending:
             self._pending.set_newest(self._newest_out)
         return self._accepted_pose(t_c)
@@ -1054,16 +1093,47 @@ class Ukf:
         self._last_pose_t_s = max(self._last_pose_t_s, t_c)
         return PoseVerdict.ACCEPTED
 
-    def _rejected_pose(self, pos: FloatArray, q_m: FloatArray) -> PoseVerdict:
+    def _rejected_pose(self, pos: FloatArray, q_m: FloatArray, t_c: float) -> PoseVerdict:
         self._rejected += 1
+        if self._consecutive == 0:
+            self._refused.clear()
         self._consecutive += 1
+        px, py, pz = pos.tolist()
+        self._refused.append((t_c, px, py, pz))
         if self._consecutive < self.cfg.max_consecutive_rejections:
             return PoseVerdict.REJECTED
-        self._reseed(pos, q_m, zero_velocity=False)
+        start_s = self._refused[0][0]
+        vel_mocap = self._refused_velocity(t_c)
+        suspect = self._imu_anomaly_t_s >= start_s - IMU_ANOMALY_MARGIN_S
+        v = self._x[VEL].tolist()
+        self.last_reset = ResetInfo(t_c, start_s, (v[0], v[1], v[2]), vel_mocap, suspect)
+        self._reseed(pos, q_m, zero_velocity=False,
+                     velocity=vel_mocap if suspect else None)
         return PoseVerdict.RESET
 
-    def _reseed(self, pos: FloatArray, q_m: FloatArray, zero_velocity: bool) -> None:
-        """Re-seed position and attitude from MoCap (marker swap that stays, or NaN state)."""
+    def _refused_velocity(self, t_c: float) -> Vec3Tuple | None:
+        """Least-squares velocity of the refused poses of the last RESEED_VELOCITY_WINDOW_S."""
+        pts = [r for r in self._refused if r[0] >= t_c - RESEED_VELOCITY_WINDOW_S - _TIME_EPS_S]
+        if len(pts) < 3:
+            return None
+        a = np.array(pts)
+        t = a[:, 0] - a[:, 0].mean()
+        den = float(t @ t)
+        if not den > 0.0:
+            return None
+        vx, vy, vz = (t @ (a[:, 1:] - a[:, 1:].mean(axis=0)) / den).tolist()
+        return (vx, vy, vz)
+
+    def note_imu_anomaly(self, t_s: float) -> None:
+        """The IMU was seen failing at ``t_s`` (samples lost or implausible, an accelerometer
+        at the link's limit): a re-seed soon after takes the velocity from MoCap as well
+        (:data:`IMU_ANOMALY_MARGIN_S`)."""
+        self._imu_anomaly_t_s = max(self._imu_anomaly_t_s, float(t_s))
+
+    def _reseed(self, pos: FloatArray, q_m: FloatArray, zero_velocity: bool,
+                velocity: Vec3Tuple | None = None) -> None:
+        """Re-seed position and attitude from MoCap (marker swap that stays, or NaN state);
+        the velocity too if given (MoCap's, when the IMU missed part of the motion)."""
         cfg = self.cfg
         self._resets += 1
         self._consecutive = 0
@@ -1076,6 +1146,8 @@ class Ukf:
         x[ATT] = 0.0
         if zero_velocity:
             x[VEL] = 0.0
+        elif velocity is not None:
+            x[VEL] = velocity
         # the velocity dead-reckoned while poses were refused is suspect too: decorrelate it
         vel_var = np.maximum(np.diag(P)[VEL], cfg.init_vel_sigma_m_s ** 2)
         for block in (POS, ATT, VEL):
@@ -1083,7 +1155,8 @@ class Ukf:
             P[:, block] = 0.0
         P[POS, POS] = cfg.init_pos_sigma_m ** 2 * np.eye(3)
         P[ATT, ATT] = math.radians(cfg.init_att_sigma_deg) ** 2 * np.eye(3)
-        P[VEL, VEL] = np.diag(np.full(3, cfg.init_vel_sigma_m_s ** 2) if zero_velocity else vel_var)
+        P[VEL, VEL] = np.diag(np.full(3, cfg.init_vel_sigma_m_s ** 2)
+                              if zero_velocity or velocity is not None else vel_var)
         self._x, self._P, self._q_ref = x, P, q_m.copy()
         self._nonfinite = False
         self._last_pose_t_s = self._now_s

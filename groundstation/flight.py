@@ -303,7 +303,8 @@ class FlightStateMachine:
         elif not h.estimator_ok:
             reason = "estimator unhealthy"
         elif not h.mocap_consistent:
-            reason = "MoCap and IMU disagree (the estimator re-seeds from MoCap again and again)"
+            reason = ("MoCap and IMU disagree (the estimator re-seeds from MoCap again and again, "
+                      "or MoCap changed velocity without the IMU feeling it)")
         elif any(p < lo or p > hi for p, lo, hi in
                  zip(h.pos_w_m, lim.geofence_min_m, lim.geofence_max_m, strict=True)):
             reason = "geofence breached at ({:.2f}, {:.2f}, {:.2f}) m".format(*h.pos_w_m)

@@ -42,6 +42,9 @@ class ImuLink(Protocol):
     @property
     def rx_errors(self) -> int: ...
 
+    @property
+    def imu_anomalies(self) -> int: ...
+
 
 @runtime_checkable
 class TiltLink(Protocol):

@@ -149,6 +149,14 @@ BLIND_STILL_SUNK_M = 0.3
 BLIND_THRUST_FRACTION = 0.9
 BLIND_STILL_ACCEL_M_S2 = 0.5
 CHECKPOINT_EVERY_S = 0.5
+#: a re-seed from MoCap with a clean IMU link (no sample lost, none implausible, no
+#: accelerometer at the link's limit around the refusals) whose refused poses move this much
+#: slower or faster than the IMU says: MoCap changed velocity and the IMU felt no such
+#: acceleration, so MoCap is wrong (a tracker that froze while the vehicle climbed at
+#: 0.34 m/s showed 0.17 m/s at its first re-seed, 0.25 s after the freeze; before, it was
+#: found 5 s later by the repeated re-seeds, 2.3 m up and climbing). MoCap jumps (a marker
+#: swap) keep the velocity: seen under 0.06 m/s, the slope's noise.
+MOCAP_VELOCITY_GAP_M_S = 0.12
 CHECKPOINT_PHASE = 7  # the tick in each period: not one of the servo's or the link check's
 #: ticks between two evaluations of the preflight checks (0.1 s at 500 Hz)
 PREFLIGHT_CHECK_TICKS = 50
@@ -267,7 +275,7 @@ class FlightLoop:
         self._c_f = params.rotors.thrust_coeff_n_per_hz2
         self._counters = {"telemetry_dropped": 0, "imu_missing": 0, "poses_fused": 0,
                           "servo_sync_failures": 0, "imu_gap_max_us": 0,
-                          "imu_gap_max_at_ms": 0}
+                          "imu_gap_max_at_ms": 0, "reseeds_imu_suspect": 0}
         self._rx_errors = 0
         self._faults_told = 0  # faults of the state machine already sent as events
         #: received / expected IMU samples over the last rate window (lockstep: from sequence
@@ -280,6 +288,11 @@ class FlightLoop:
         self._last_pose_t_s = -math.inf     # capture time of the newest valid pose fused
         #: MoCap disagreed with the IMU in flight: its poses are no longer fused (latched)
         self.mocap_distrusted = False
+        #: a re-seed on a clean IMU link found MoCap's velocity off the IMU's (latched until
+        #: MoCap is distrusted: MOCAP_VELOCITY_GAP_M_S)
+        self._mocap_velocity_off = False
+        #: the IMU link's anomaly count at the last pose (ImuLink.imu_anomalies)
+        self._imu_anomalies = 0
         #: the sum of the UKF's re-seeds on MoCap since arming (m, world): the mission's
         #: reference moves with them, as an autopilot moves its set-points with an estimator
         #: reset (a room recalibrated or a marker set swapped mid-flight: the vehicle has not
@@ -761,11 +774,14 @@ class FlightLoop:
             self._last_pose_t_s = pose.t_ns * 1e-9 - t0_s
         elif pose.valid:
             cap_s = pose.t_ns * 1e-9 - t0_s
+            anomalies = self.imu.imu_anomalies   # at the pose rate: a counter, polled
+            if anomalies != self._imu_anomalies:
+                self._imu_anomalies = anomalies
+                self.ukf.note_imu_anomaly(t_s)
             if math.isfinite(self.ukf.t_s) and self.ukf.update_pose(
                     cap_s, pose.pos_w_m, pose.q_wb) is PoseVerdict.RESET:
                 self._reseeds.append(cap_s)  # MoCap refused, then taken as truth
-                if self.sm.state in MOTORS_ON:
-                    self._move_reference(t_s, est.pos_w_m)
+                self._judge_reset(t_s, est)
             self._last_pose_t_s = cap_s
             self._counters["poses_fused"] += 1
 
@@ -899,6 +915,31 @@ class FlightLoop:
             ended_aloft=ended_aloft, landed_imu=landed_imu,
         )
 
+    def _judge_reset(self, t_s: float, est: VehicleState) -> None:
+        """The UKF re-seeded on MoCap: which sensor was wrong? The IMU if it was seen failing
+        (the UKF took MoCap's velocity too: nothing moved, the estimate is corrected); MoCap if
+        its velocity is off the IMU's on a clean link; else MoCap jumped (a marker swap), and
+        the mission's reference moves with it."""
+        info = self.ukf.last_reset
+        if self.sm.state not in MOTORS_ON or info is None:
+            return
+        if info.imu_suspect:
+            self._counters["reseeds_imu_suspect"] += 1
+            self.event_sink(f"{t_s:.3f} s the IMU missed motion (samples lost or at the "
+                            "link's limit): the estimate re-seeded on MoCap, velocity included "
+                            f"({info.velocity_gap_m_s:.2f} m/s off)")
+            return
+        gap = info.velocity_gap_m_s
+        if gap > MOCAP_VELOCITY_GAP_M_S and self.sm.state in FLYING:
+            self._mocap_velocity_off = True
+            self.event_sink(
+                f"{t_s:.3f} s MoCap's velocity is {gap:.2f} m/s off the IMU's on a clean IMU "
+                "link (MoCap ({:+.2f}, {:+.2f}, {:+.2f}) m/s, IMU ({:+.2f}, {:+.2f}, {:+.2f}) "
+                "m/s): a change of velocity the IMU did not feel".format(
+                    *(info.vel_mocap_w_m_s or (math.nan,) * 3), *info.vel_est_w_m_s))
+            return
+        self._move_reference(t_s, est.pos_w_m)
+
     def _move_reference(self, t_s: float, before_w_m: tuple[float, float, float]) -> None:
         """The estimate was re-seeded on MoCap: the mission's reference moves by its step."""
         after = self.ukf.output_state()[0]
@@ -926,6 +967,8 @@ class FlightLoop:
         """False while MoCap and the IMU keep disagreeing: the UKF re-seeded from MoCap at
         least ``RESEEDS_INCONSISTENT`` times within ``RESEED_WINDOW_S`` (one re-seed is a marker
         swap or a recalibrated room; repeated ones are a frozen or wrong tracker)."""
+        if self._mocap_velocity_off:
+            return False
         n = 0
         for r in self._reseeds:
             if t_s - r <= RESEED_WINDOW_S:

@@ -259,6 +259,9 @@ class LinkStats:
     battery voltage above any pack."""
     seq_rejected: int
     """IMU samples dropped because their sequence number did not fit."""
+    accel_saturated: int
+    """IMU samples kept with an accelerometer axis at the ``I`` frame's limit (±32.767 m/s²):
+    the true specific force was larger (an impact), the sample says too little."""
     resyncs: int
     imu_overwritten: int
     """Samples replaced in the mailbox before the loop took them."""
@@ -491,6 +494,7 @@ class FlightCtrl:
         self._timebase = _ImuTimeBase(2_000_000)
         self._malformed = 0
         self._implausible = 0
+        self._saturated = 0
         self._last_imu_raw: tuple[tuple[float, ...], tuple[float, ...]] | None = None
         self._spike_run = 0
         self._imu_overwritten = 0
@@ -624,6 +628,13 @@ class FlightCtrl:
         return (stats.frame_errors + stats.garbage_bytes + self._malformed + self._implausible
                 + self._timebase.rejected)
 
+    @property
+    def imu_anomalies(self) -> int:
+        """Receive errors plus the samples kept with a saturated accelerometer: every event
+        after which the IMU may have missed part of the motion (a sample lost or implausible,
+        an impact beyond the wire's range). Polled by the loop at the MoCap rate, not per tick."""
+        return self.rx_errors + self._saturated
+
     def latest_imu(self) -> ImuSample | None:
         with self._cond:
             return self._imu
@@ -751,7 +762,8 @@ class FlightCtrl:
                 mag=streams["mag"], frames=tk3s.messages + tk3s.frame_errors,
                 garbage_bytes=tk3s.garbage_bytes, frame_errors=tk3s.frame_errors,
                 malformed=self._malformed, implausible=self._implausible,
-                seq_rejected=self._timebase.rejected, resyncs=self._timebase.resyncs,
+                seq_rejected=self._timebase.rejected, accel_saturated=self._saturated,
+                resyncs=self._timebase.resyncs,
                 imu_overwritten=self._imu_overwritten, frames_sent=self._frames_sent,
                 texts=tuple(self._texts), imu_clock=self._timebase.clock())
 
@@ -937,6 +949,9 @@ class FlightCtrl:
                 return
         self._spike_run = 0
         self._last_imu_raw = (g, a)
+        lim = mkm.IMU_ACCEL_WIRE_LIMIT_M_S2
+        if abs(ax) >= lim or abs(ay) >= lim or abs(az) >= lim:
+            self._saturated += 1
         stamped = self._timebase.accept(msg.seq, t_ns)
         if stamped is None:
             return

@@ -112,6 +112,9 @@ MIN_SPIN_HZ = 1e6 / 65535
 """Below this spin rate (≈15.26 Hz) the half period does not fit: the sentinel is sent."""
 _HALF_PERIOD_NUM = 500_000.0  # 1e6 / 2: half period in µs of a rotation at 1 Hz
 MAX_SPIN_HZ = 500.0
+#: the ``I`` frame's accelerometer limit: an s16 of mm/s^2 clips at +-32.767 m/s^2 (3.3 g, below
+#: the sensor's own 8 g), so a hard impact reads as a run of samples at this value
+IMU_ACCEL_WIRE_LIMIT_M_S2 = 32.767
 """Fastest spin rate a BL-Ctrl can report or be held to (30 000 rpm; half period 1000 µs).
 The FAST-Hex propellers top out near 102 Hz and hobby outrunners near 300 Hz: a faster reading
 is a corrupted frame, never a motor."""

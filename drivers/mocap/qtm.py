@@ -433,8 +433,11 @@ def quat_to_euler(q_xyzw: tuple[float, float, float, float]) -> Vec3:
     r11, r21, _r31, r12, r22, _r32, r13, r23, r33 = quat_to_matrix(q_xyzw)
     # R = Rx Ry Rz: r13 = sin a2, r23 = -sin a1 cos a2, r33 = cos a1 cos a2,
     # r12 = -cos a2 sin a3, r11 = cos a2 cos a3.
-    a2 = math.asin(max(-1.0, min(1.0, r13)))
-    if abs(r13) < 1.0 - 1e-9:
+    # a2 from its sine and cosine (hypot(r11, r12) = cos a2): asin loses digits near +-90 deg,
+    # and a wide gimbal-lock band (|sin a2| > 1 - 1e-9, cos a2 < 4.5e-5) dropped a3 there
+    cos_a2 = math.hypot(r11, r12)
+    a2 = math.atan2(r13, cos_a2)
+    if cos_a2 > 1e-12:
         a1 = math.atan2(-r23, r33)
         a3 = math.atan2(-r12, r11)
     else:  # gimbal lock: only a1 ± a3 is defined; put it all in a1

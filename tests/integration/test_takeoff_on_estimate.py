@@ -128,3 +128,52 @@ def test_that_a_vehicle_that_lifts_but_cannot_reach_the_height_lands_on_the_sett
     assert abs(rows["pos_w_m"][-1][:2] - xy_land_m).max() < 0.05
     assert abs(rows["pos_w_m"][-1][2] - 0.1) < 0.02
     assert max(rows["spin_hz"][-1]) == 0.0
+
+
+def test_that_mocap_frozen_in_the_climb_is_caught_by_a_velocity_the_imu_did_not_feel(
+        tmp_path: Path) -> None:
+    # MoCap freezes 1.8 s into the climb, the vehicle rising at 0.34 m/s: the UKF refuses the
+    # frozen poses for 0.25 s, then re-seeds on them. The IMU link is clean, so a MoCap that
+    # stopped while the IMU felt no deceleration is the wrong one. Before, only repeated
+    # re-seeds told, 5 s later: the vehicle had climbed to 2.3 m on an estimate pinned at
+    # 0.7 m and drifted 26 m before the blind landing's bound cut its motors 4.3 m up.
+    events: list[str] = []
+    out = fly(tmp_path, faults="mocap-freeze@3.8", on_event=events.append)
+    land = _transition(out, FlightState.LANDING)
+    assert land.reason.startswith("failsafe: MoCap and IMU disagree")  # type: ignore[attr-defined]
+    assert 3.8 < land.t_s < 3.8 + 0.5  # type: ignore[attr-defined]
+    assert any("MoCap's velocity is" in e and "on a clean IMU link" in e for e in events)
+    assert out.result.transitions[-1].to_state is FlightState.DISARMED
+    assert out.result.transitions[-1].reason == "touchdown (IMU: still at low thrust)"
+    rows = read_record(out.record_path).rows
+    z, vz = rows["pos_w_m"][:, 2], rows["vel_w_m_s"][:, 2]
+    assert z.max() < 0.8 + 0.05   # the climb stopped at the take-off height
+    last_aloft = int(np.where(z > 0.1 + 0.02)[0][-1])
+    contact = last_aloft + int(np.argmax(z[last_aloft:] <= 0.1 + 0.001))
+    assert -vz[contact - 1] < MAX_TOUCHDOWN_SPEED_M_S
+    assert np.hypot(*(rows["pos_w_m"][-1][:2] - rows["pos_w_m"][0][:2])) < 0.2
+    assert max(rows["spin_hz"][-1]) == 0.0
+
+
+def test_that_a_fall_too_hard_for_the_imu_link_is_not_blamed_on_mocap(tmp_path: Path) -> None:
+    # Every rotor loses half its thrust in the hover: the vehicle falls 0.7 m and hits the
+    # ground at 1.05 m/s. The I frame clips the impact at 32.767 m/s^2 and the driver drops
+    # its steepest samples, so the IMU misses half the stop and the estimate sinks on
+    # through the ground. MoCap is right: the UKF re-seeds on it with its velocity too, as
+    # the link counted the anomalies. Before, the re-seeds kept the IMU's velocity, were
+    # taken for a wrong MoCap, and the blind landing that followed pushed 2-8 times the
+    # weight's thrust to chase an estimate 3.9 m under the ground, the vehicle hopping and
+    # sliding 2 m until the cut.
+    events: list[str] = []
+    out = fly(tmp_path, faults="rotor-thrust@5:0.5", on_event=events.append)
+    assert any("the IMU missed motion" in e for e in events)
+    assert not any("disagree" in f for f in out.result.faults)
+    assert not any("no longer fused" in e for e in events)
+    assert out.result.transitions[-1].to_state is FlightState.DISARMED
+    assert FlightState.CUT not in [tr.to_state for tr in out.result.transitions]
+    rows = read_record(out.record_path).rows
+    est_err_m = np.linalg.norm(rows["est_pos_w_m"] - rows["pos_w_m"], axis=1)
+    assert est_err_m.max() < 0.25        # the estimate stayed on the vehicle
+    assert abs(rows["pos_w_m"][-1][2] - 0.1) < 0.03
+    assert np.hypot(*(rows["pos_w_m"][-1][:2] - rows["pos_w_m"][0][:2])) < 0.3
+    assert max(rows["spin_hz"][-1]) == 0.0

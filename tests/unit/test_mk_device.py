@@ -140,6 +140,28 @@ def test_that_a_lone_imu_jump_is_dropped_and_three_in_a_row_are_taken_as_real(
     assert fc.link_stats().implausible == 4
 
 
+def test_that_an_accelerometer_at_the_frames_limit_is_kept_and_counted_as_an_anomaly(
+        link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
+    # Fixture: a hard touchdown reads more than the I frame's s16 of mm/s^2 can carry
+    fc, wire, clock = link
+    _push(fc, wire, clock, _imu(0), 0.0)
+    before = fc.imu_anomalies
+    # Test: an impact ramping to the limit over three samples (each step within the 20 m/s^2
+    # a sample may change by), held there twice, then back down to g
+    ramp = [(0.0, 0.0, 25.0), (0.0, 0.0, 40.0), (0.0, 0.0, 60.0), (0.0, 0.0, 60.0),
+            (0.0, 0.0, 45.0), (0.0, 0.0, 28.0), (0.0, 0.0, 9.81)]
+    got = [_push(fc, wire, clock, tk3.encode_frame(mkm.ImuMessage(1 + k, a, (0.0, 0.0, 0.0))
+                                                   .encode()), 2.0 + 2.0 * k)
+           for k, a in enumerate(ramp)]
+    # Assert: every sample reaches the loop (the clipped ones at the limit), four of them
+    # counted saturated: the loop knows the IMU missed part of that motion
+    assert all(s is not None for s in got)
+    assert [abs(s.accel_m_s2[2]) for s in got if s is not None][1:5] == \
+        [pytest.approx(mkm.IMU_ACCEL_WIRE_LIMIT_M_S2)] * 4
+    assert fc.link_stats().accel_saturated == 4
+    assert fc.imu_anomalies - before == 4 and fc.rx_errors == 0
+
+
 def test_that_the_imu_axes_map_board_to_body(
         link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
     fc, wire, clock = link

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimator import EstimatorConfig, HealthFlag, PoseVerdict, Ukf
+from estimator import EstimatorConfig, HealthFlag, PoseVerdict, ResetInfo, Ukf
 from estimator import synthetic as sy
 
 SHORT = (6.0, 6.1)    # 100 ms without poses
@@ -121,6 +121,45 @@ def test_that_a_marker_swap_that_stays_resets_position_to_mocap_after_n_rejectio
     assert est.health().resets == 1
     end = est.estimate().pos_w_m
     np.testing.assert_allclose(end, sc.truth.pos_w_m[-1] + [0.3, 0.0, 0.0], atol=3e-3)
+
+
+@pytest.mark.parametrize("imu_noted", [True, False])
+def test_that_a_reseed_takes_mocaps_velocity_only_when_the_imu_was_seen_failing(
+        imu_noted: bool) -> None:
+    # Fixture: a hover whose IMU, at 2 s, reads 20 ms of an impact the body never had (as an
+    # impact beyond the link's range reads too little): a 0.5 m/s phantom upward velocity
+    sc = sy.make_scenario(sy.hover(), 4.0, sy.PAPER_IMU, sy.MocapModel(pos_sigma_m=5e-4),
+                          seed=6)
+    hit = (sc.truth.t_s >= 2.0) & (sc.truth.t_s < 2.02)
+    sc.accel_m_s2[hit] += (0.0, 0.0, 25.0)
+    est = start_at_truth(sc)
+    first: list[ResetInfo] = []
+
+    def note(k: int) -> None:       # what the loop does when the link counts an anomaly
+        if imu_noted and hit[k]:
+            est.note_imu_anomaly(float(sc.truth.t_s[k]))
+        if not first and est.last_reset is not None:
+            first.append(est.last_reset)
+
+    # Test
+    log = sy.run(est, sc, on_tick=note)
+    # Assert: the poses are refused until the re-seed, which measured the gap between the
+    # IMU's velocity and MoCap's (the refused poses' slope: the hover's ~0)
+    info = first[0] if first else None
+    assert info is not None and info.imu_suspect is imu_noted
+    assert info.streak_start_s == pytest.approx(2.0, abs=0.05)
+    assert info.vel_mocap_w_m_s is not None
+    assert np.linalg.norm(info.vel_mocap_w_m_s) < 0.05
+    assert info.velocity_gap_m_s == pytest.approx(0.5, abs=0.1)
+    after = log.t_s > info.t_s + 0.05
+    v_err = np.linalg.norm(log.vel_w_m_s[after] - sc.truth.vel_w_m_s[after], axis=1)
+    if imu_noted:   # MoCap's velocity taken: one re-seed, the estimate right from there
+        assert est.health().resets == 1
+        assert v_err.max() < 0.05
+    else:           # the IMU's velocity kept (MoCap is the suspect): off after the re-seed,
+        # which the next ones repeat (what the loop counts as MoCap and IMU disagreeing)
+        assert v_err[0] > 0.3
+        assert est.health().resets >= 3
 
 
 def test_that_dead_reckoning_grows_the_covariance_monotonically() -> None:
