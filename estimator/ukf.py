@@ -1124,6 +1124,11 @@ class Ukf:
         vx, vy, vz = (t @ (a[:, 1:] - a[:, 1:].mean(axis=0)) / den).tolist()
         return (vx, vy, vz)
 
+    @property
+    def imu_anomaly_t_s(self) -> float:
+        """The newest time the IMU was seen failing (:meth:`note_imu_anomaly`), -inf: never."""
+        return self._imu_anomaly_t_s
+
     def note_imu_anomaly(self, t_s: float) -> None:
         """The IMU was seen failing at ``t_s`` (samples lost or implausible, an accelerometer
         at the link's limit): a re-seed soon after takes the velocity from MoCap as well

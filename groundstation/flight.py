@@ -329,6 +329,11 @@ class FlightStateMachine:
         else:
             self._land(t_s, f"failsafe: {reason}", here=True)
 
+    def note_fault(self, t_s: float, what: str) -> None:
+        """A fault the flight goes on through (the loop already acted on it): listed with
+        the others, no transition."""
+        self._fault(t_s, what)
+
     def _fault(self, t_s: float, what: str) -> None:
         self.faults.append(f"{t_s:.3f} s: {what}")
 

@@ -45,6 +45,9 @@ class ImuLink(Protocol):
     @property
     def imu_anomalies(self) -> int: ...
 
+    @property
+    def imu_motion_missed(self) -> int: ...
+
 
 @runtime_checkable
 class TiltLink(Protocol):

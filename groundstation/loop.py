@@ -43,7 +43,7 @@ from drivers.dynamixel.device import ServoHealth as DxlHealth
 from drivers.dynamixel.device import ServoState
 from drivers.errors import DeviceLostError, DriverError
 from drivers.mikrokopter.device import LinkHealth
-from estimator.ukf import PoseVerdict, Ukf, UkfCheckpoint
+from estimator.ukf import IMU_ANOMALY_MARGIN_S, PoseVerdict, Ukf, UkfCheckpoint
 from groundstation.console import number
 from groundstation.flight import (
     FLYING,
@@ -105,6 +105,10 @@ IMU_LOW_THRUST_FRACTION = 0.6
 IMU_STILL_ACCEL_M_S2 = 1.5
 IMU_STILL_RATE_RAD_S = 0.2
 IMU_LANDED_S = 1.0
+#: ... samples that break the stillness for at most this long do not restart it (on a 0.5 %
+#: corrupted link a spike every ~0.1 s kept a blind landing from ever seeing its touchdown:
+#: the vehicle slid 6 m over the floor until the blind cut)
+IMU_STILL_GRACE_S = 0.02
 #: session time past ``max_flight_s`` after which a landing that has not touched down is cut
 TIME_LIMIT_CUT_S = 120.0
 #: lockstep: wall time after which a sample counts as lost, and the slice to check the link.
@@ -140,6 +144,10 @@ BLIND_SINK_M = 1.0
 #: vertically (going back to before the first re-seed instead dead reckoned longer: more
 #: drift, a vehicle rocking 25 deg on its gear)
 DEAD_RECKON_LOOKBACK_S = 3.0
+#: ... but on an IMU link with an anomaly within ANOMALOUS_LINK_S, from a checkpoint this long
+#: before the first refused pose (the poses pulled the estimate for the refusal's first frames)
+MOCAP_OFF_LEAD_S = 0.5
+ANOMALOUS_LINK_S = 1.0
 #: a blind landing's reference this far under the ground: below BLIND_THRUST_FRACTION of
 #: the weight, the IMU held still within BLIND_STILL_ACCEL_M_S2 of g for IMU_LANDED_S is a
 #: touchdown (in the air that thrust reads 0.1 g short of g). A dead reckoning drifting on
@@ -149,14 +157,22 @@ BLIND_STILL_SUNK_M = 0.3
 BLIND_THRUST_FRACTION = 0.9
 BLIND_STILL_ACCEL_M_S2 = 0.5
 CHECKPOINT_EVERY_S = 0.5
-#: a re-seed from MoCap with a clean IMU link (no sample lost, none implausible, no
-#: accelerometer at the link's limit around the refusals) whose refused poses move this much
-#: slower or faster than the IMU says: MoCap changed velocity and the IMU felt no such
+#: a re-seed from MoCap whose refused poses move this much slower or faster than the IMU says
+#: (_judge_reset). On a clean IMU link (no sample lost, none implausible, no accelerometer at
+#: the link's limit around the refusals) MoCap changed velocity and the IMU felt no such
 #: acceleration, so MoCap is wrong (a tracker that froze while the vehicle climbed at
 #: 0.34 m/s showed 0.17 m/s at its first re-seed, 0.25 s after the freeze; before, it was
-#: found 5 s later by the repeated re-seeds, 2.3 m up and climbing). MoCap jumps (a marker
-#: swap) keep the velocity: seen under 0.06 m/s, the slope's noise.
+#: found 5 s later by the repeated re-seeds, 2.3 m up and climbing). On a failing link the
+#: IMU missed motion (a 1.05 m/s impact left 0.59 m/s). MoCap jumps (a marker swap) and the
+#: re-seeds of a 0.5 % corrupted link keep the velocity: seen under 0.06 m/s, the slope's
+#: noise; taken for the IMU's, a 0.5 m jump on such a link was chased at 75 deg of tilt.
 MOCAP_VELOCITY_GAP_M_S = 0.12
+#: a re-seed that moves the estimate less than this on a failing IMU link (samples lost,
+#: implausible) is the estimate's own correction, not a MoCap jump (seen on a 0.5 % corrupted
+#: link: re-seeds of 1-2 cm about once a second; counted as MoCap jumps, three of them around
+#: a real jump within 1 s were taken for MoCap disagreeing and landed the vehicle blind); on
+#: the ground, a larger one disarms
+MOCAP_JUMP_MIN_M = 0.05
 CHECKPOINT_PHASE = 7  # the tick in each period: not one of the servo's or the link check's
 #: ticks between two evaluations of the preflight checks (0.1 s at 500 Hz)
 PREFLIGHT_CHECK_TICKS = 50
@@ -275,7 +291,8 @@ class FlightLoop:
         self._c_f = params.rotors.thrust_coeff_n_per_hz2
         self._counters = {"telemetry_dropped": 0, "imu_missing": 0, "poses_fused": 0,
                           "servo_sync_failures": 0, "imu_gap_max_us": 0,
-                          "imu_gap_max_at_ms": 0, "reseeds_imu_suspect": 0}
+                          "imu_gap_max_at_ms": 0, "reseeds_imu_missed_motion": 0,
+                          "reseeds_imu_link": 0}
         self._rx_errors = 0
         self._faults_told = 0  # faults of the state machine already sent as events
         #: received / expected IMU samples over the last rate window (lockstep: from sequence
@@ -291,8 +308,16 @@ class FlightLoop:
         #: a re-seed on a clean IMU link found MoCap's velocity off the IMU's (latched until
         #: MoCap is distrusted: MOCAP_VELOCITY_GAP_M_S)
         self._mocap_velocity_off = False
-        #: the IMU link's anomaly count at the last pose (ImuLink.imu_anomalies)
+        #: the first refused pose of each re-seed in _reseeds (capture times)
+        self._reseed_streaks: collections.deque[float] = collections.deque(maxlen=8)
+        #: the IMU link's anomaly counts at the last pose (ImuLink.imu_anomalies and
+        #: imu_motion_missed) and when the latter last grew
         self._imu_anomalies = 0
+        self._imu_missed = 0
+        self._imu_missed_t_s = -math.inf
+        #: a session limit found after this tick's state machine update, for the next one's
+        #: (its transition is acted on in the tick it is made: FlightStateMachine.limit)
+        self._limit_next: str | None = None
         #: the sum of the UKF's re-seeds on MoCap since arming (m, world): the mission's
         #: reference moves with them, as an autopilot moves its set-points with an estimator
         #: reset (a room recalibrated or a marker set swapped mid-flight: the vehicle has not
@@ -325,6 +350,7 @@ class FlightLoop:
         ground_since_s: float | None = None
         aloft_since_s: float | None = None   # the mission over, the estimate off the ground
         still_since_s: float | None = None   # LANDING: at low thrust, the IMU held still
+        unstill_since_s: float | None = None  # ... and since when it is not
         time_limit_told = 0  # 1: the session time limit landed the vehicle, 2: it cut
         record_lost_why: str | None = None  # the flight record lost: why (acted on once)
         record_lost_told = False
@@ -507,6 +533,9 @@ class FlightLoop:
                 # a flight nobody records: land it (before arming: end the session)
                 record_lost_told = True
                 sm.limit(t_s, f"flight record lost: {record_lost_why}")
+            if self._limit_next is not None:
+                sm.limit(t_s, self._limit_next)
+                self._limit_next = None
             if t_s > opts.max_flight_s and time_limit_told < 1:
                 time_limit_told = 1
                 sm.limit(t_s, f"session time limit ({opts.max_flight_s:g} s)")
@@ -570,8 +599,12 @@ class FlightLoop:
                         and force_cmd_b[2] < self._blind_thrust_n
                         and self._imu_still(imu, BLIND_STILL_ACCEL_M_S2))):
                 still_since_s = t_s if still_since_s is None else still_since_s
-            else:
-                still_since_s = None
+                unstill_since_s = None
+            elif still_since_s is not None:
+                # a lone corrupted sample (a frame without checksum) does not end it
+                unstill_since_s = t_s if unstill_since_s is None else unstill_since_s
+                if t_s - unstill_since_s > IMU_STILL_GRACE_S:
+                    still_since_s = None
             landed_imu = still_since_s is not None and t_s - still_since_s >= IMU_LANDED_S
             mocap_consistent = self._mocap_consistent(t_s)
             if not mocap_consistent and not self.mocap_distrusted and sm.state in FLYING:
@@ -774,14 +807,17 @@ class FlightLoop:
             self._last_pose_t_s = pose.t_ns * 1e-9 - t0_s
         elif pose.valid:
             cap_s = pose.t_ns * 1e-9 - t0_s
-            anomalies = self.imu.imu_anomalies   # at the pose rate: a counter, polled
+            anomalies = self.imu.imu_anomalies   # at the pose rate: counters, polled
             if anomalies != self._imu_anomalies:
                 self._imu_anomalies = anomalies
                 self.ukf.note_imu_anomaly(t_s)
+                missed = self.imu.imu_motion_missed
+                if missed != self._imu_missed:
+                    self._imu_missed = missed
+                    self._imu_missed_t_s = t_s
             if math.isfinite(self.ukf.t_s) and self.ukf.update_pose(
                     cap_s, pose.pos_w_m, pose.q_wb) is PoseVerdict.RESET:
-                self._reseeds.append(cap_s)  # MoCap refused, then taken as truth
-                self._judge_reset(t_s, est)
+                self._judge_reset(t_s, cap_s, est)
             self._last_pose_t_s = cap_s
             self._counters["poses_fused"] += 1
 
@@ -915,28 +951,51 @@ class FlightLoop:
             ended_aloft=ended_aloft, landed_imu=landed_imu,
         )
 
-    def _judge_reset(self, t_s: float, est: VehicleState) -> None:
-        """The UKF re-seeded on MoCap: which sensor was wrong? The IMU if it was seen failing
-        (the UKF took MoCap's velocity too: nothing moved, the estimate is corrected); MoCap if
-        its velocity is off the IMU's on a clean link; else MoCap jumped (a marker swap), and
-        the mission's reference moves with it."""
+    def _judge_reset(self, t_s: float, cap_s: float, est: VehicleState) -> None:
+        """The UKF re-seeded on MoCap (``est``: this tick's estimate, before): which sensor was
+        wrong? Their velocities differ (MOCAP_VELOCITY_GAP_M_S): the IMU if it surely missed
+        motion around the refusals (an accelerometer at the link's limit, an impact's step;
+        the UKF took MoCap's velocity: nothing moves), else MoCap (it changed speed without the
+        IMU feeling it: the failsafe). They agree: a small step on a failing IMU link is the
+        estimate's own (corrupted samples kick it); else MoCap jumped (a marker swap, a
+        recalibrated room): the mission's reference moves with the estimate, or, on the
+        ground, the flight does not start. MoCap jumps and MoCap found off the IMU count
+        towards MoCap disagreeing with the IMU (RESEEDS_INCONSISTENT)."""
         info = self.ukf.last_reset
-        if self.sm.state not in MOTORS_ON or info is None:
-            return
-        if info.imu_suspect:
-            self._counters["reseeds_imu_suspect"] += 1
-            self.event_sink(f"{t_s:.3f} s the IMU missed motion (samples lost or at the "
-                            "link's limit): the estimate re-seeded on MoCap, velocity included "
-                            f"({info.velocity_gap_m_s:.2f} m/s off)")
+        if info is None:
             return
         gap = info.velocity_gap_m_s
+        step_m = math.dist(est.pos_w_m, self.ukf.output_state()[0])
+        missed = self._imu_missed_t_s >= info.streak_start_s - IMU_ANOMALY_MARGIN_S
+        if gap > MOCAP_VELOCITY_GAP_M_S and missed and info.imu_suspect:
+            self._counters["reseeds_imu_missed_motion"] += 1
+            if self.sm.state in MOTORS_ON:
+                self.event_sink(f"{t_s:.3f} s the IMU missed motion (an impact beyond the "
+                                "link's range): the estimate re-seeded on MoCap, velocity "
+                                f"included ({gap:.2f} m/s off)")
+            return
+        if info.imu_suspect and step_m < MOCAP_JUMP_MIN_M and not gap > MOCAP_VELOCITY_GAP_M_S:
+            self._counters["reseeds_imu_link"] += 1     # corrupted samples kicked the estimate
+            return
+        self._reseeds.append(cap_s)
+        self._reseed_streaks.append(info.streak_start_s)
+        if self.sm.state not in MOTORS_ON:
+            return
         if gap > MOCAP_VELOCITY_GAP_M_S and self.sm.state in FLYING:
             self._mocap_velocity_off = True
             self.event_sink(
-                f"{t_s:.3f} s MoCap's velocity is {gap:.2f} m/s off the IMU's on a clean IMU "
-                "link (MoCap ({:+.2f}, {:+.2f}, {:+.2f}) m/s, IMU ({:+.2f}, {:+.2f}, {:+.2f}) "
-                "m/s): a change of velocity the IMU did not feel".format(
+                f"{t_s:.3f} s MoCap's velocity is {gap:.2f} m/s off the IMU's, which missed "
+                "no motion (MoCap ({:+.2f}, {:+.2f}, {:+.2f}) m/s, IMU ({:+.2f}, {:+.2f}, "
+                "{:+.2f}) m/s): a change of velocity the IMU did not feel".format(
                     *(info.vel_mocap_w_m_s or (math.nan,) * 3), *info.vel_est_w_m_s))
+            return
+        if self.sm.state is FlightState.ARMED:
+            # on the ground: MoCap moved a vehicle that did not (a marker set swapped, the
+            # room recalibrated); a mission flown in the tracker's new frame goes where
+            # nobody planned it to, so it does not start
+            if step_m >= MOCAP_JUMP_MIN_M:
+                self._limit_next = (f"MoCap jumped {step_m:.2f} m while armed on the ground "
+                                    "(check the tracker's rigid body)")
             return
         self._move_reference(t_s, est.pos_w_m)
 
@@ -949,19 +1008,39 @@ class FlightLoop:
         self.event_sink(f"{t_s:.3f} s MoCap jumped: the estimate re-seeded on it "
                         f"{math.hypot(*step):.2f} m away; the mission's reference moved with "
                         "it ({:+.2f}, {:+.2f}, {:+.2f}) m".format(*step))
+        self.sm.note_fault(t_s, f"MoCap jumped {math.hypot(*step):.2f} m: the mission goes on "
+                           "in the tracker's new frame")
 
     def _dead_reckon(self, t_s: float) -> float:
         """The UKF back to its newest checkpoint at least DEAD_RECKON_LOOKBACK_S old (else its
-        oldest), then on the IMU alone to now; how far back it went (s)."""
+        oldest), then on the IMU alone to now; how far back it went (s). On an IMU link that
+        failed in the last ANOMALOUS_LINK_S (corrupted samples kick a dead reckoning), only to
+        MOCAP_OFF_LEAD_S before the refusals of the oldest re-seed counted began, if that is
+        later: 3 s of a 0.5 % corrupted link's IMU through a take-off sank the dead reckoning
+        10 m under a vehicle that its controller then climbed to 11 m. (Always going back
+        that little missed a tracker frozen in the hover on a clean link, found only once the
+        landing moved, 3 s later.)"""
         cps = self._checkpoints
         if not cps:
             return 0.0
+        before_s = t_s - DEAD_RECKON_LOOKBACK_S
+        if self.ukf.imu_anomaly_t_s >= t_s - ANOMALOUS_LINK_S:
+            before_s = max(before_s, self._refusals_began_s - MOCAP_OFF_LEAD_S)
         cp = cps[0]
         for c in cps:
-            if c.t_s <= t_s - DEAD_RECKON_LOOKBACK_S:
+            if c.t_s <= before_s:
                 cp = c
         self.ukf.dead_reckon_from(cp, self._imu_inputs)
         return t_s - cp.t_s
+
+    @property
+    def _refusals_began_s(self) -> float:
+        """When the refusals of the oldest re-seed in the inconsistency window began (the
+        newest re-seed's if none: the velocity check)."""
+        newest = self._reseeds[-1] if self._reseeds else -math.inf
+        began = [s for r, s in zip(self._reseeds, self._reseed_streaks, strict=True)
+                 if newest - r <= RESEED_WINDOW_S]
+        return min(began, default=-math.inf)
 
     def _mocap_consistent(self, t_s: float) -> bool:
         """False while MoCap and the IMU keep disagreeing: the UKF re-seeded from MoCap at

@@ -262,6 +262,8 @@ class LinkStats:
     accel_saturated: int
     """IMU samples kept with an accelerometer axis at the ``I`` frame's limit (±32.767 m/s²):
     the true specific force was larger (an impact), the sample says too little."""
+    late_steps: int
+    """IMU steps believed only after their first three samples were dropped as implausible."""
     resyncs: int
     imu_overwritten: int
     """Samples replaced in the mailbox before the loop took them."""
@@ -495,6 +497,7 @@ class FlightCtrl:
         self._malformed = 0
         self._implausible = 0
         self._saturated = 0
+        self._late_steps = 0
         self._last_imu_raw: tuple[tuple[float, ...], tuple[float, ...]] | None = None
         self._spike_run = 0
         self._imu_overwritten = 0
@@ -630,10 +633,18 @@ class FlightCtrl:
 
     @property
     def imu_anomalies(self) -> int:
-        """Receive errors plus the samples kept with a saturated accelerometer: every event
-        after which the IMU may have missed part of the motion (a sample lost or implausible,
-        an impact beyond the wire's range). Polled by the loop at the MoCap rate, not per tick."""
-        return self.rx_errors + self._saturated
+        """Receive errors, samples kept with a saturated accelerometer and samples the loop
+        never took (overwritten in the mailbox: a late host): every event after which the
+        motion the IMU gave the loop may be short of the real one. Polled by the loop at the
+        MoCap rate, not per tick."""
+        return self.rx_errors + self._saturated + self._imu_overwritten
+
+    @property
+    def imu_motion_missed(self) -> int:
+        """Of those, the events in which the IMU surely missed motion: an accelerometer at the
+        ``I`` frame's limit, or a step taken as real only after its first three samples were
+        dropped as implausible (an impact). A corrupted byte makes neither (a lone spike)."""
+        return self._saturated + self._late_steps
 
     def latest_imu(self) -> ImuSample | None:
         with self._cond:
@@ -763,6 +774,7 @@ class FlightCtrl:
                 garbage_bytes=tk3s.garbage_bytes, frame_errors=tk3s.frame_errors,
                 malformed=self._malformed, implausible=self._implausible,
                 seq_rejected=self._timebase.rejected, accel_saturated=self._saturated,
+                late_steps=self._late_steps,
                 resyncs=self._timebase.resyncs,
                 imu_overwritten=self._imu_overwritten, frames_sent=self._frames_sent,
                 texts=tuple(self._texts), imu_clock=self._timebase.clock())
@@ -947,6 +959,8 @@ class FlightCtrl:
                 self._implausible += 1
                 self._spike_run += 1
                 return
+        if self._spike_run >= 3:
+            self._late_steps += 1       # the three dropped samples were a real step
         self._spike_run = 0
         self._last_imu_raw = (g, a)
         lim = mkm.IMU_ACCEL_WIRE_LIMIT_M_S2
