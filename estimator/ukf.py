@@ -1112,8 +1112,11 @@ class Ukf:
         return PoseVerdict.RESET
 
     def _refused_velocity(self, t_c: float) -> Vec3Tuple | None:
-        """Least-squares velocity of the refused poses of the last RESEED_VELOCITY_WINDOW_S."""
+        """Least-squares velocity of the refused poses of the last RESEED_VELOCITY_WINDOW_S
+        (the last 3 if fewer: a MoCap slower than 30 Hz)."""
         pts = [r for r in self._refused if r[0] >= t_c - RESEED_VELOCITY_WINDOW_S - _TIME_EPS_S]
+        if len(pts) < 3:
+            pts = list(self._refused)[-3:]
         if len(pts) < 3:
             return None
         a = np.array(pts)
