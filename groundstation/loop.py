@@ -105,9 +105,9 @@ IMU_LOW_THRUST_FRACTION = 0.6
 IMU_STILL_ACCEL_M_S2 = 1.5
 IMU_STILL_RATE_RAD_S = 0.2
 IMU_LANDED_S = 1.0
-#: ... samples that break the stillness for at most this long do not restart it (on a 0.5 %
-#: corrupted link a spike every ~0.1 s kept a blind landing from ever seeing its touchdown:
-#: the vehicle slid 6 m over the floor until the blind cut)
+#: ... samples that break the stillness for at most this long do not restart it (a link
+#: without checksum passes corrupted samples: a 0.5 % corrupted one spikes about every
+#: 0.1 s, and one spike restarted the whole second)
 IMU_STILL_GRACE_S = 0.02
 #: session time past ``max_flight_s`` after which a landing that has not touched down is cut
 TIME_LIMIT_CUT_S = 120.0
@@ -1035,8 +1035,8 @@ class FlightLoop:
 
     @property
     def _refusals_began_s(self) -> float:
-        """When the refusals of the oldest re-seed in the inconsistency window began (the
-        newest re-seed's if none: the velocity check)."""
+        """When the refusals of the oldest re-seed counted in the inconsistency window began
+        (-inf before any)."""
         newest = self._reseeds[-1] if self._reseeds else -math.inf
         began = [s for r, s in zip(self._reseeds, self._reseed_streaks, strict=True)
                  if newest - r <= RESEED_WINDOW_S]
