@@ -131,6 +131,9 @@ class ResetInfo(NamedTuple):
     """The refused poses' velocity (:data:`RESEED_VELOCITY_WINDOW_S`); None: too few poses."""
     imu_suspect: bool
     """The IMU was seen failing around the refusals: the velocity was taken from MoCap."""
+    imu_missed_motion: bool
+    """... and in a way that surely missed motion (an impact beyond the link's range), not
+    only lost or corrupted samples."""
 
     @property
     def velocity_gap_m_s(self) -> float:
@@ -156,7 +159,7 @@ _CHECKPOINT_SKIP = frozenset({
     "_hist_t", "_hist_x", "_hist_P", "_hist_q", "_hist_gyro", "_hist_accel", "_steps_py",
     "_fobs_const", "_noise_rates", "_horizon_rank", "_rest", "_accepted", "_rejected",
     "_too_old", "_resets", "_repairs", "_imu_out_of_order", "_imu_invalid", "_poses_invalid",
-    "_last_nis", "_refused", "last_reset", "_imu_anomaly_t_s"})
+    "_last_nis", "_refused", "last_reset", "_imu_anomaly_t_s", "_imu_missed_t_s"})
 
 
 class PoseVerdict(enum.Enum):
@@ -428,8 +431,8 @@ class Ukf:
         #: the refused poses of the current run of refusals: (capture time, x, y, z)
         self._refused: collections.deque[tuple[float, float, float, float]] = \
             collections.deque(maxlen=1024)
-        #: newest time the IMU was seen failing (note_imu_anomaly)
-        self._imu_anomaly_t_s = -math.inf
+        #: newest time the IMU was seen failing, and missing motion (note_imu_anomaly)
+        self._imu_anomaly_t_s = self._imu_missed_t_s = -math.inf
         #: the newest re-seed from refused poses, None before the first
         self.last_reset: ResetInfo | None = None
         self._too_old = 0
@@ -1105,8 +1108,10 @@ class Ukf:
         start_s = self._refused[0][0]
         vel_mocap = self._refused_velocity(t_c)
         suspect = self._imu_anomaly_t_s >= start_s - IMU_ANOMALY_MARGIN_S
+        missed = self._imu_missed_t_s >= start_s - IMU_ANOMALY_MARGIN_S
         v = self._x[VEL].tolist()
-        self.last_reset = ResetInfo(t_c, start_s, (v[0], v[1], v[2]), vel_mocap, suspect)
+        self.last_reset = ResetInfo(t_c, start_s, (v[0], v[1], v[2]), vel_mocap, suspect,
+                                    missed)
         self._reseed(pos, q_m, zero_velocity=False,
                      velocity=vel_mocap if suspect else None)
         return PoseVerdict.RESET
@@ -1132,11 +1137,14 @@ class Ukf:
         """The newest time the IMU was seen failing (:meth:`note_imu_anomaly`), -inf: never."""
         return self._imu_anomaly_t_s
 
-    def note_imu_anomaly(self, t_s: float) -> None:
-        """The IMU was seen failing at ``t_s`` (samples lost or implausible, an accelerometer
-        at the link's limit): a re-seed soon after takes the velocity from MoCap as well
+    def note_imu_anomaly(self, t_s: float, motion_missed: bool = False) -> None:
+        """The IMU was seen failing at ``t_s`` (samples lost, corrupted or implausible;
+        ``motion_missed``: an accelerometer at the link's limit, an impact's step): a re-seed
+        soon after takes the velocity from MoCap as well and says so in :attr:`last_reset`
         (:data:`IMU_ANOMALY_MARGIN_S`)."""
         self._imu_anomaly_t_s = max(self._imu_anomaly_t_s, float(t_s))
+        if motion_missed:
+            self._imu_missed_t_s = max(self._imu_missed_t_s, float(t_s))
 
     def _reseed(self, pos: FloatArray, q_m: FloatArray, zero_velocity: bool,
                 velocity: Vec3Tuple | None = None) -> None:

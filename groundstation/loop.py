@@ -43,7 +43,7 @@ from drivers.dynamixel.device import ServoHealth as DxlHealth
 from drivers.dynamixel.device import ServoState
 from drivers.errors import DeviceLostError, DriverError
 from drivers.mikrokopter.device import LinkHealth
-from estimator.ukf import IMU_ANOMALY_MARGIN_S, PoseVerdict, Ukf, UkfCheckpoint
+from estimator.ukf import PoseVerdict, Ukf, UkfCheckpoint
 from groundstation.console import number
 from groundstation.flight import (
     FLYING,
@@ -158,12 +158,12 @@ BLIND_THRUST_FRACTION = 0.9
 BLIND_STILL_ACCEL_M_S2 = 0.5
 CHECKPOINT_EVERY_S = 0.5
 #: a re-seed from MoCap whose refused poses move this much slower or faster than the IMU says
-#: (_judge_reset). On a clean IMU link (no sample lost, none implausible, no accelerometer at
-#: the link's limit around the refusals) MoCap changed velocity and the IMU felt no such
-#: acceleration, so MoCap is wrong (a tracker that froze while the vehicle climbed at
-#: 0.34 m/s showed 0.17 m/s at its first re-seed, 0.25 s after the freeze; before, it was
-#: found 5 s later by the repeated re-seeds, 2.3 m up and climbing). On a failing link the
-#: IMU missed motion (a 1.05 m/s impact left 0.59 m/s). MoCap jumps (a marker swap) and the
+#: (_judge_reset). If the IMU missed no motion around the refusals (no accelerometer at the
+#: link's limit, no impact's step: lost or corrupted samples miss none) MoCap changed velocity
+#: and the IMU felt no such acceleration, so MoCap is wrong (a tracker that froze while the
+#: vehicle climbed at 0.34 m/s showed 0.17 m/s at its first re-seed, 0.25 s after the freeze;
+#: before, it was found 5 s later by the repeated re-seeds, 2.3 m up and climbing). If it did,
+#: the IMU was wrong (a 1.05 m/s impact left 0.59 m/s). MoCap jumps (a marker swap) and the
 #: re-seeds of a 0.5 % corrupted link keep the velocity: seen under 0.06 m/s, the slope's
 #: noise; taken for the IMU's, a 0.5 m jump on such a link was chased at 75 deg of tilt.
 MOCAP_VELOCITY_GAP_M_S = 0.12
@@ -299,22 +299,20 @@ class FlightLoop:
         #: numbers, so a degraded link is caught on the simulated clock too)
         self.imu_rate_fraction = 1.0
         self._longest_gap_ns = 0
-        #: capture times of the UKF's recent re-seeds from MoCap (persistent disagreement)
-        self._reseeds: collections.deque[float] = collections.deque(maxlen=8)
+        #: the UKF's recent re-seeds counted against MoCap (persistent disagreement): their
+        #: capture times and those of the first refused pose before each
+        self._reseeds: collections.deque[tuple[float, float]] = collections.deque(maxlen=8)
         self._last_frame = -1               # frame number of the newest pose taken
         self._last_pose_t_s = -math.inf     # capture time of the newest valid pose fused
         #: MoCap disagreed with the IMU in flight: its poses are no longer fused (latched)
         self.mocap_distrusted = False
-        #: a re-seed on a clean IMU link found MoCap's velocity off the IMU's (latched until
-        #: MoCap is distrusted: MOCAP_VELOCITY_GAP_M_S)
+        #: a re-seed found MoCap's velocity off the IMU's, and the IMU had missed no motion
+        #: (latched until MoCap is distrusted: MOCAP_VELOCITY_GAP_M_S)
         self._mocap_velocity_off = False
-        #: the first refused pose of each re-seed in _reseeds (capture times)
-        self._reseed_streaks: collections.deque[float] = collections.deque(maxlen=8)
         #: the IMU link's anomaly counts at the last pose (ImuLink.imu_anomalies and
-        #: imu_motion_missed) and when the latter last grew
+        #: imu_motion_missed)
         self._imu_anomalies = 0
         self._imu_missed = 0
-        self._imu_missed_t_s = -math.inf
         #: a session limit found after this tick's state machine update, for the next one's
         #: (its transition is acted on in the tick it is made: FlightStateMachine.limit)
         self._limit_next: str | None = None
@@ -809,12 +807,9 @@ class FlightLoop:
             cap_s = pose.t_ns * 1e-9 - t0_s
             anomalies = self.imu.imu_anomalies   # at the pose rate: counters, polled
             if anomalies != self._imu_anomalies:
-                self._imu_anomalies = anomalies
-                self.ukf.note_imu_anomaly(t_s)
                 missed = self.imu.imu_motion_missed
-                if missed != self._imu_missed:
-                    self._imu_missed = missed
-                    self._imu_missed_t_s = t_s
+                self.ukf.note_imu_anomaly(t_s, motion_missed=missed != self._imu_missed)
+                self._imu_anomalies, self._imu_missed = anomalies, missed
             if math.isfinite(self.ukf.t_s) and self.ukf.update_pose(
                     cap_s, pose.pos_w_m, pose.q_wb) is PoseVerdict.RESET:
                 self._judge_reset(t_s, cap_s, est)
@@ -966,8 +961,7 @@ class FlightLoop:
             return
         gap = info.velocity_gap_m_s
         step_m = math.dist(est.pos_w_m, self.ukf.output_state()[0])
-        missed = self._imu_missed_t_s >= info.streak_start_s - IMU_ANOMALY_MARGIN_S
-        if gap > MOCAP_VELOCITY_GAP_M_S and missed and info.imu_suspect:
+        if gap > MOCAP_VELOCITY_GAP_M_S and info.imu_missed_motion:
             self._counters["reseeds_imu_missed_motion"] += 1
             if self.sm.state in MOTORS_ON:
                 self.event_sink(f"{t_s:.3f} s the IMU missed motion (an impact beyond the "
@@ -977,8 +971,7 @@ class FlightLoop:
         if info.imu_suspect and step_m < MOCAP_JUMP_MIN_M and not gap > MOCAP_VELOCITY_GAP_M_S:
             self._counters["reseeds_imu_link"] += 1     # corrupted samples kicked the estimate
             return
-        self._reseeds.append(cap_s)
-        self._reseed_streaks.append(info.streak_start_s)
+        self._reseeds.append((cap_s, info.streak_start_s))
         if self.sm.state not in MOTORS_ON:
             return
         if gap > MOCAP_VELOCITY_GAP_M_S and self.sm.state in FLYING:
@@ -1037,10 +1030,9 @@ class FlightLoop:
     def _refusals_began_s(self) -> float:
         """When the refusals of the oldest re-seed counted in the inconsistency window began
         (-inf before any)."""
-        newest = self._reseeds[-1] if self._reseeds else -math.inf
-        began = [s for r, s in zip(self._reseeds, self._reseed_streaks, strict=True)
-                 if newest - r <= RESEED_WINDOW_S]
-        return min(began, default=-math.inf)
+        newest = self._reseeds[-1][0] if self._reseeds else -math.inf
+        return min((s for r, s in self._reseeds if newest - r <= RESEED_WINDOW_S),
+                   default=-math.inf)
 
     def _mocap_consistent(self, t_s: float) -> bool:
         """False while MoCap and the IMU keep disagreeing: the UKF re-seeded from MoCap at
@@ -1049,7 +1041,7 @@ class FlightLoop:
         if self._mocap_velocity_off:
             return False
         n = 0
-        for r in self._reseeds:
+        for r, _ in self._reseeds:
             if t_s - r <= RESEED_WINDOW_S:
                 n += 1
         return n < RESEEDS_INCONSISTENT

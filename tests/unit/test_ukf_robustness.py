@@ -123,10 +123,10 @@ def test_that_a_marker_swap_that_stays_resets_position_to_mocap_after_n_rejectio
     np.testing.assert_allclose(end, sc.truth.pos_w_m[-1] + [0.3, 0.0, 0.0], atol=3e-3)
 
 
-@pytest.mark.parametrize(("imu_noted", "mocap_hz"), [(True, 100.0), (False, 100.0),
-                                                    (True, 12.0)])
+@pytest.mark.parametrize(("imu_noted", "missed", "mocap_hz"), [
+    (True, True, 100.0), (True, False, 100.0), (False, False, 100.0), (True, True, 12.0)])
 def test_that_a_reseed_takes_mocaps_velocity_only_when_the_imu_was_seen_failing(
-        imu_noted: bool, mocap_hz: float) -> None:
+        imu_noted: bool, missed: bool, mocap_hz: float) -> None:
     # Fixture: a hover whose IMU, at 2 s, reads 20 ms of an impact the body never had (as an
     # impact beyond the link's range reads too little): a 0.5 m/s phantom upward velocity.
     # (At 12 Hz the refused poses of the last 0.1 s are too few: the last 3 give the slope.)
@@ -138,8 +138,8 @@ def test_that_a_reseed_takes_mocaps_velocity_only_when_the_imu_was_seen_failing(
     first: list[ResetInfo] = []
 
     def note(k: int) -> None:       # what the loop does when the link counts an anomaly
-        if imu_noted and hit[k]:
-            est.note_imu_anomaly(float(sc.truth.t_s[k]))
+        if imu_noted and hit[k]:    # an impact beyond the link's range, or lost samples
+            est.note_imu_anomaly(float(sc.truth.t_s[k]), motion_missed=missed)
         if not first and est.last_reset is not None:
             first.append(est.last_reset)
 
@@ -149,6 +149,7 @@ def test_that_a_reseed_takes_mocaps_velocity_only_when_the_imu_was_seen_failing(
     # IMU's velocity and MoCap's (the refused poses' slope: the hover's ~0)
     info = first[0] if first else None
     assert info is not None and info.imu_suspect is imu_noted
+    assert info.imu_missed_motion is missed
     assert info.streak_start_s == pytest.approx(2.0, abs=0.05 + 1.0 / mocap_hz)
     assert info.vel_mocap_w_m_s is not None
     assert np.linalg.norm(info.vel_mocap_w_m_s) < 0.05
