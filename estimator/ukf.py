@@ -698,6 +698,11 @@ class Ukf:
         p, v, qq = self._pending.newest()
         return p, v, qq, omega
 
+    def biases(self) -> tuple[Vec3Tuple, Vec3Tuple]:
+        """The gyro (rad/s) and accelerometer (m/s^2) biases as plain floats."""
+        xl = self._x[9:15].tolist()
+        return (xl[0], xl[1], xl[2]), (xl[3], xl[4], xl[5])
+
     def force_ext_w_n(self) -> Vec3Tuple:
         """The force observer's estimate of :meth:`estimate` (world, N), as plain floats."""
         return self._force_w

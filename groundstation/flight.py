@@ -76,7 +76,8 @@ class HealthSnapshot:
     lifted_off: bool = True
     #: the estimate is at the take-off height within its tolerance, and steady
     takeoff_reached: bool = True
-    #: MoCap and the IMU agree (the estimator is not re-seeding from MoCap again and again)
+    #: MoCap and the IMU agree (MoCap moves as the IMU feels; the estimator is not
+    #: re-seeding from MoCap again and again)
     mocap_consistent: bool = True
     #: what the servo driver says is wrong, named in a servo fault ("no reply", "stale", ...)
     servo_detail: str = ""
@@ -303,8 +304,8 @@ class FlightStateMachine:
         elif not h.estimator_ok:
             reason = "estimator unhealthy"
         elif not h.mocap_consistent:
-            reason = ("MoCap and IMU disagree (the estimator re-seeds from MoCap again and again, "
-                      "or MoCap changed velocity without the IMU feeling it)")
+            reason = ("MoCap and IMU disagree (MoCap turned or changed velocity without the IMU "
+                      "feeling it, or the estimator re-seeds from MoCap again and again)")
         elif any(p < lo or p > hi for p, lo, hi in
                  zip(h.pos_w_m, lim.geofence_min_m, lim.geofence_max_m, strict=True)):
             reason = "geofence breached at ({:.2f}, {:.2f}, {:.2f}) m".format(*h.pos_w_m)

@@ -43,6 +43,7 @@ from drivers.dynamixel.device import ServoHealth as DxlHealth
 from drivers.dynamixel.device import ServoState
 from drivers.errors import DeviceLostError, DriverError
 from drivers.mikrokopter.device import LinkHealth
+from estimator.consistency import Comparison, ConsistencyMonitor
 from estimator.ukf import PoseVerdict, Ukf, UkfCheckpoint
 from groundstation.console import number
 from groundstation.flight import (
@@ -173,6 +174,22 @@ MOCAP_VELOCITY_GAP_M_S = 0.12
 #: a real jump within 1 s were taken for MoCap disagreeing and landed the vehicle blind); on
 #: the ground, a larger one disarms
 MOCAP_JUMP_MIN_M = 0.05
+#: MoCap against the IMU alone over estimator.consistency's 1 s horizon: MoCap turned this much
+#: more than the gyro felt, or its velocity changed this much more than the accelerometer
+#: felt (only over an IMU link without anomalies: a corrupted sample spoils the integral; on
+#: one with anomalies the rotation's limit is MONITOR_ROTATION_FAILING_LINK_DEG), for
+#: MONITOR_PERSIST_S, in the air: MoCap is wrong. Fault-free flights in the air (20, the
+#: paper's three experiments among them; paper-calibrated disturbances) stayed under 0.20 deg
+#: (0.35 on a 0.5 % corrupted link) and 0.022 m/s; a tracker frozen in the hover was found in
+#: 0.3-1.2 s (before, by the repeated re-seeds: 1.5-3 s, the vehicle drifting up to 0.67 m).
+#: Touchdowns are left out (MONITOR_MIN_HEIGHT_M): the contact shows up to 1 deg, 0.15 m/s.
+MONITOR_ROTATION_DEG = 0.4
+MONITOR_ROTATION_FAILING_LINK_DEG = 0.6
+MONITOR_VELOCITY_M_S = 0.05
+#: longer than one comparison window: a MoCap jump (a marker swap) spoils the windows holding
+#: it for 0.2 s, as it enters the horizon and again as it leaves, and agrees in between
+MONITOR_PERSIST_S = 0.25
+MONITOR_MIN_HEIGHT_M = 0.15
 CHECKPOINT_PHASE = 7  # the tick in each period: not one of the servo's or the link check's
 #: ticks between two evaluations of the preflight checks (0.1 s at 500 Hz)
 PREFLIGHT_CHECK_TICKS = 50
@@ -309,6 +326,11 @@ class FlightLoop:
         #: a re-seed found MoCap's velocity off the IMU's, and the IMU had missed no motion
         #: (latched until MoCap is distrusted: MOCAP_VELOCITY_GAP_M_S)
         self._mocap_velocity_off = False
+        #: MoCap against the IMU alone (MONITOR_*): since when they disagree, and what made
+        #: MoCap distrusted if it did (latched, as the above)
+        self._consistency = ConsistencyMonitor(self.ukf.cfg.gravity_m_s2)
+        self._monitor_bad_since_s: float | None = None
+        self._monitor_verdict: Comparison | None = None
         #: the IMU link's anomaly counts at the last pose (ImuLink.imu_anomalies and
         #: imu_motion_missed)
         self._imu_anomalies = 0
@@ -479,6 +501,7 @@ class FlightLoop:
                          force_cmd_b if tick is not None else None)
             self.ukf.predict(*imu_input)
             self._imu_inputs.append(imu_input)
+            self._consistency.add_imu(t_s, imu.gyro_rad_s, imu.accel_m_s2)
             # plain floats and one check, not the full estimate (its covariance copy and
             # health report cost as much as the predict)
             force_ext = None
@@ -810,9 +833,12 @@ class FlightLoop:
                 missed = self.imu.imu_motion_missed
                 self.ukf.note_imu_anomaly(t_s, motion_missed=missed != self._imu_missed)
                 self._imu_anomalies, self._imu_missed = anomalies, missed
-            if math.isfinite(self.ukf.t_s) and self.ukf.update_pose(
-                    cap_s, pose.pos_w_m, pose.q_wb) is PoseVerdict.RESET:
+            verdict = self.ukf.update_pose(cap_s, pose.pos_w_m, pose.q_wb) \
+                if math.isfinite(self.ukf.t_s) else None
+            if verdict is PoseVerdict.RESET:
                 self._judge_reset(t_s, cap_s, est)
+            elif verdict is PoseVerdict.ACCEPTED or verdict is PoseVerdict.REJECTED:
+                self._compare_with_imu(t_s, cap_s, pose.pos_w_m, pose.q_wb, est)
             self._last_pose_t_s = cap_s
             self._counters["poses_fused"] += 1
 
@@ -992,6 +1018,39 @@ class FlightLoop:
             return
         self._move_reference(t_s, est.pos_w_m)
 
+    def _compare_with_imu(self, t_s: float, cap_s: float, pos_w_m: tuple[float, ...],
+                          q_wb: tuple[float, ...], est: VehicleState) -> None:
+        """MoCap against the IMU alone (estimator.consistency, MONITOR_*): in the air, a
+        disagreement that lasts makes MoCap distrusted."""
+        bg, ba = self.ukf.biases()
+        cmp = self._consistency.add_pose(cap_s, pos_w_m, q_wb, bg, ba,
+                                         accel_clean_since_s=self.ukf.imu_anomaly_t_s)
+        if cmp is None:
+            return
+        if not (self.sm.state in FLYING
+                and est.pos_w_m[2] > self.opts.ground_z_m + MONITOR_MIN_HEIGHT_M
+                and (cmp.rotation_deg > (MONITOR_ROTATION_DEG
+                                         if math.isfinite(cmp.velocity_gap_m_s)
+                                         else MONITOR_ROTATION_FAILING_LINK_DEG)
+                     or cmp.velocity_gap_m_s > MONITOR_VELOCITY_M_S)):
+            self._monitor_bad_since_s = None
+            return
+        since = self._monitor_bad_since_s
+        if since is None:
+            self._monitor_bad_since_s = cmp.t_s
+            return
+        if cmp.t_s - since < MONITOR_PERSIST_S or self._monitor_verdict is not None:
+            return
+        self._monitor_verdict = cmp
+        velocity = (f"changed velocity {cmp.velocity_gap_m_s:.3f} m/s more than the accelerometer "
+                    f"felt (limits {MONITOR_ROTATION_DEG:g} deg, {MONITOR_VELOCITY_M_S:g} m/s)"
+                    if math.isfinite(cmp.velocity_gap_m_s) else
+                    "(the IMU link had anomalies: velocity not compared, rotation's limit "
+                    f"{MONITOR_ROTATION_FAILING_LINK_DEG:g} deg)")
+        self.event_sink(f"{t_s:.3f} s MoCap disagrees with the IMU alone over the last "
+                        f"{cmp.t_s - cmp.start_s:.2f} s: it turned {cmp.rotation_deg:.2f} deg "
+                        f"more than the gyro felt and {velocity}")
+
     def _move_reference(self, t_s: float, before_w_m: tuple[float, float, float]) -> None:
         """The estimate was re-seeded on MoCap: the mission's reference moves by its step."""
         after = self.ukf.output_state()[0]
@@ -1006,7 +1065,11 @@ class FlightLoop:
 
     def _dead_reckon(self, t_s: float) -> float:
         """The UKF back to its newest checkpoint at least DEAD_RECKON_LOOKBACK_S old (else its
-        oldest), then on the IMU alone to now; how far back it went (s). On an IMU link that
+        oldest), then on the IMU alone to now; how far back it went (s). MoCap found wrong by
+        the comparison with the IMU alone (MONITOR_*): only to MOCAP_OFF_LEAD_S before its
+        horizon, if that is later (the poses agreed then; a freeze at 4.5 s in the hover, dead
+        reckoned from 3 s back, drifted 0.50 m and rocked the vehicle to 23 deg on its gear,
+        from 1.7 s back 0.14 m and 2 deg). On an IMU link that
         failed in the last ANOMALOUS_LINK_S (corrupted samples kick a dead reckoning), only to
         MOCAP_OFF_LEAD_S before the refusals of the oldest re-seed counted began, if that is
         later: 3 s of a 0.5 % corrupted link's IMU through a take-off sank the dead reckoning
@@ -1017,6 +1080,8 @@ class FlightLoop:
         if not cps:
             return 0.0
         before_s = t_s - DEAD_RECKON_LOOKBACK_S
+        if self._monitor_verdict is not None:
+            before_s = max(before_s, self._monitor_verdict.start_s - MOCAP_OFF_LEAD_S)
         if self.ukf.imu_anomaly_t_s >= t_s - ANOMALOUS_LINK_S:
             before_s = max(before_s, self._refusals_began_s - MOCAP_OFF_LEAD_S)
         cp = cps[0]
@@ -1038,7 +1103,7 @@ class FlightLoop:
         """False while MoCap and the IMU keep disagreeing: the UKF re-seeded from MoCap at
         least ``RESEEDS_INCONSISTENT`` times within ``RESEED_WINDOW_S`` (one re-seed is a marker
         swap or a recalibrated room; repeated ones are a frozen or wrong tracker)."""
-        if self._mocap_velocity_off:
+        if self._mocap_velocity_off or self._monitor_verdict is not None:
             return False
         n = 0
         for r, _ in self._reseeds:

@@ -22,7 +22,7 @@ from groundstation.loop import ENDED_ALOFT_S
 from groundstation.record import read_record
 from groundstation.session import FlightSession
 from groundstation.session_config import load_session
-from tests.flight_support import SESSION, SHORT_MISSION, short_session
+from tests.flight_support import SESSION, SHORT_MISSION, fly, short_session
 
 GROUND_Z_M = 0.1  # the short mission's start height (O_B at rest)
 TICK_S = 0.002
@@ -164,11 +164,12 @@ def _contact(rec: np.ndarray) -> tuple[int, float]:
 def test_that_a_landing_after_the_mocap_froze_runs_on_the_imu_and_ends_on_its_touchdown(
         tmp_path: Path) -> None:
     # Fixture: MoCap frozen at 5 s in the hover (it keeps streaming the pose of then, with its
-    # noise). The UKF fuses it until it disagrees too much with the IMU, then re-seeds on it
-    # again and again: MoCap and IMU disagree, the failsafe lands. Landing on that estimate,
-    # held near the frozen pose, brought the vehicle down at idle, 1.2-1.5 m/s; now the
-    # estimate goes back 3 s, before the freeze, and runs on the IMU alone from there.
-    # A 30 s limit bounds the flight should the landing not end.
+    # noise). The UKF fuses it, dragged along; MoCap compared with the IMU alone turns and
+    # changes velocity as the IMU does not feel it: MoCap and IMU disagree, the failsafe
+    # lands. Landing on that estimate, held near the frozen pose, brought the vehicle down at
+    # idle, 1.2-1.5 m/s; the estimate goes back to before the comparison's horizon and runs
+    # on the IMU alone from there. Before the comparison only repeated re-seeds told, 1.5-3 s
+    # after a freeze. A 30 s limit bounds the flight should the landing not end.
     cfg, params, mission = short_session(tmp_path)
     cfg = replace(cfg, backend=replace(cfg.backend, faults=("mocap-freeze@5",)),
                   safety=replace(cfg.safety, session_time_limit_s=30.0))
@@ -176,11 +177,13 @@ def test_that_a_landing_after_the_mocap_froze_runs_on_the_imu_and_ends_on_its_to
     # Test
     outcome = FlightSession(cfg, params, mission, record_path=tmp_path / "frozen.fhr",
                             echo_events=False, on_event=events.append).run()
-    # Assert: landed on the IMU alone, disarmed by the IMU's touchdown (the estimate's own is
-    # not trusted then), soon after
+    # Assert: found within a second by the comparison, landed on the IMU alone, disarmed by
+    # the IMU's touchdown (the estimate's own is not trusted then), soon after
     trs = _transitions(outcome)
     t_land, _, _, why = next(tr for tr in trs if tr[2] is FlightState.LANDING)
     assert why.startswith("failsafe: MoCap and IMU disagree")
+    assert 5.0 < t_land < 5.0 + 1.0
+    assert any("MoCap disagrees with the IMU alone over the last 1.10 s" in e for e in events)
     assert any("MoCap disagrees with the IMU: its poses are no longer fused" in e
                for e in events)
     t_end, frm, to, why = trs[-1]
@@ -194,10 +197,31 @@ def test_that_a_landing_after_the_mocap_froze_runs_on_the_imu_and_ends_on_its_to
     assert np.max(rec["pos_w_m"][contact:, 2]) - GROUND_Z_M < 0.002   # and it stayed down
     assert rec["pos_w_m"][-1][2] == pytest.approx(GROUND_Z_M, abs=0.01)
     drift = np.hypot(*(rec["pos_w_m"][-1][:2] - rec["pos_w_m"][0][:2]))
-    # dead reckoned for ~10 s (from 3 s before the failsafe to the touchdown): an attitude
-    # error of 1-2 mrad moves it 0.5-1 m in that time (1.2 m here; 3.0 m with the estimate
-    # held by a freeze at 4.5 s)
-    assert drift < 1.5
+    # dead reckoned for ~7 s (from 1.7 s before the failsafe to the touchdown): 0.13 m here;
+    # found by the re-seeds, dead reckoned from 3 s back for ~10 s: 1.2 m
+    assert drift < 0.3
+
+
+def test_that_a_tracker_frozen_in_a_steady_hover_is_found_by_a_velocity_the_imu_did_not_feel(
+        tmp_path: Path) -> None:
+    # Fixture: MoCap frozen at 7.5 s, the vehicle holding its attitude in the hover: MoCap's
+    # rotation agrees with the gyro's for a while. The vehicle, its estimate held still,
+    # drifts off at a growing speed (0.08 m/s after 1 s) that MoCap does not show and the
+    # accelerometer feels. Found by the repeated re-seeds, it was 3 s later, 0.5 m away.
+    events: list[str] = []
+    out = fly(tmp_path, faults="mocap-freeze@7.5", on_event=events.append)
+    trs = _transitions(out)
+    t_land, _, _, why = next(tr for tr in trs if tr[2] is FlightState.LANDING)
+    assert why.startswith("failsafe: MoCap and IMU disagree")
+    assert 7.5 < t_land < 7.5 + 1.2
+    seen = next(e for e in events if "MoCap disagrees with the IMU alone" in e)
+    assert "changed velocity" in seen
+    assert trs[-1][1:] == (FlightState.LANDING, FlightState.DISARMED,
+                           "touchdown (IMU: still at low thrust)")
+    rec = read_record(out.record_path).rows
+    _, speed = _contact(rec)
+    assert speed < MAX_TOUCHDOWN_SPEED_M_S
+    assert np.hypot(*(rec["pos_w_m"][-1][:2] - rec["pos_w_m"][0][:2])) < 0.15
 
 
 def test_that_a_dead_reckoned_landing_that_never_touches_down_is_cut(
