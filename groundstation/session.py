@@ -286,6 +286,7 @@ def _telemetry_run(ring: TelemetryRing, writer: RecordWriter, events: Any, event
     every 50 ms until the session stops or dies; the record closed at the end. Returns the
     events not yet published to the MAVLink link."""
     pending_events: list[str] = []
+    all_events = False      # the session's END_OF_EVENTS came: nothing follows it
     with open(events_path, "a", encoding="utf-8") as ev:
         while True:
             # the session ended, or died (kill -9): either way, write out what the ring holds
@@ -295,10 +296,17 @@ def _telemetry_run(ring: TelemetryRing, writer: RecordWriter, events: Any, event
                 writer.append_block(rows)
                 if dash is not None:
                     dash.log_rows(rows)
-            while True:
+            while not all_events:
+                # at the end, wait for the events still on their way: a queue's feeder thread
+                # may not have written the session's last ones to the pipe yet (under load
+                # the last transitions were lost); a session that died sends no end marker
                 try:
-                    text = events.get_nowait()
+                    text = events.get(timeout=END_DRAIN_S) if finished \
+                        else events.get_nowait()
                 except queue.Empty:
+                    break
+                if text == END_OF_EVENTS:
+                    all_events = True
                     break
                 ev.write(text + "\n")
                 if dash is not None:
@@ -340,6 +348,7 @@ def _salvage_events(events: Any, events_path: Path) -> None:
     with contextlib.suppress(Exception):
         while True:
             lines.append(events.get(timeout=0.05))
+    lines = [line for line in lines if line != END_OF_EVENTS]
     if lines:
         with contextlib.suppress(OSError), events_path.open("a", encoding="utf-8") as ev:
             ev.write("\n".join(lines) + "\n")
@@ -643,6 +652,8 @@ class FlightSession:
             if mocap is not None:
                 with contextlib.suppress(Exception):
                     mocap.close()
+            with contextlib.suppress(queue.Full, ValueError):  # the telemetry drains up to it
+                events.put_nowait(END_OF_EVENTS)
             stop.set()
             if tel is not None:
                 tel.join(timeout=30.0)
@@ -760,6 +771,10 @@ def _open_device(what: str, uri: str, open_it: Callable[[], T]) -> T:
 LOCKSTEP_SERVO_START_S = 20.0
 #: how long the telemetry process may take for its imports (a loaded host, a cold disk cache)
 TELEMETRY_START_S = 60.0
+#: the session's last item on the events queue, and how long the telemetry process waits for
+#: events still under way once the session has stopped (it died: no end marker comes)
+END_OF_EVENTS = "\x00end of events"
+END_DRAIN_S = 0.5
 #: props-off bench test: idle spin after the spin-up, seconds
 PROPS_OFF_SPIN_S = 3.0
 

@@ -59,7 +59,9 @@ def test_that_a_telemetry_process_dying_in_flight_lands_the_vehicle(tmp_path: Pa
                             on_event=on_event).run()
     # Assert: a failsafe landing on the estimate, named, soon after the kill (the loop looks
     # every LINK_CHECK_TICKS ticks; the kill lands within a few ms of wall time, ~10x that
-    # in lockstep flight time), then the touchdown
+    # in lockstep flight time, but a loaded host takes longer to end the process: 1.1 s of
+    # flight seen beside the full test suite), well before the mission would end, then the
+    # touchdown
     trs = outcome.result.transitions
     mission_t = next(tr.t_s for tr in trs if tr.to_state is FlightState.MISSION)
     lost = [tr for tr in trs if tr.reason.startswith("failsafe: flight record lost")]
@@ -67,7 +69,7 @@ def test_that_a_telemetry_process_dying_in_flight_lands_the_vehicle(tmp_path: Pa
     assert lost[0].reason == ("failsafe: flight record lost: the telemetry process exited "
                               "(exit code -9)")
     assert (lost[0].from_state, lost[0].to_state) == (FlightState.MISSION, FlightState.LANDING)
-    assert mission_t < lost[0].t_s < mission_t + 1.0
+    assert mission_t < lost[0].t_s < mission_t + 3.0    # the hover lasts 4 s
     assert trs[-1].to_state is FlightState.DISARMED and trs[-1].reason == "touchdown"
     assert outcome.result.end_reason.startswith("failsafe: flight record lost")
     # the events the dead process could not write are in the events file all the same
