@@ -180,8 +180,9 @@ MOCAP_JUMP_MIN_M = 0.05
 #: one with anomalies the rotation's limit is MONITOR_ROTATION_FAILING_LINK_DEG), for
 #: MONITOR_PERSIST_S, in the air: MoCap is wrong. Fault-free flights in the air (20, the
 #: paper's three experiments among them; paper-calibrated disturbances) stayed under 0.20 deg
-#: (0.35 on a 0.5 % corrupted link) and 0.022 m/s; a tracker frozen in the hover was found in
-#: 0.3-1.2 s (before, by the repeated re-seeds: 1.5-3 s, the vehicle drifting up to 0.67 m).
+#: (0.35 on a 0.5 % corrupted link) and 0.022 m/s; a tracker frozen in the hover was found a
+#: median 0.6-1.4 s after (seeds 1-10; before, by the repeated re-seeds: 1.6-4.4 s, 10 of 40
+#: flights cut, drift up to 59 m).
 #: Touchdowns are left out (MONITOR_MIN_HEIGHT_M): the contact shows up to 1 deg, 0.15 m/s.
 MONITOR_ROTATION_DEG = 0.4
 MONITOR_ROTATION_FAILING_LINK_DEG = 0.6
@@ -1100,9 +1101,11 @@ class FlightLoop:
                    default=-math.inf)
 
     def _mocap_consistent(self, t_s: float) -> bool:
-        """False while MoCap and the IMU keep disagreeing: the UKF re-seeded from MoCap at
-        least ``RESEEDS_INCONSISTENT`` times within ``RESEED_WINDOW_S`` (one re-seed is a marker
-        swap or a recalibrated room; repeated ones are a frozen or wrong tracker)."""
+        """False while MoCap and the IMU keep disagreeing: MoCap moved as the IMU alone did
+        not feel (MONITOR_*, or a re-seed's velocity: latched), or the UKF re-seeded from
+        MoCap at least ``RESEEDS_INCONSISTENT`` times within ``RESEED_WINDOW_S`` (one re-seed
+        is a marker swap or a recalibrated room; repeated ones are a frozen or wrong
+        tracker)."""
         if self._mocap_velocity_off or self._monitor_verdict is not None:
             return False
         n = 0
