@@ -12,7 +12,9 @@ stock firmware, which cannot stream the IMU at 500 Hz nor take per-motor spin ra
 stream periods are set (``b``, ``m``, ``i``, ``c``).
 
 A reader thread owns the receive side. It timestamps every chunk on the injected clock, deframes,
-decodes, checks lengths, ranges and IMU sequence numbers, and puts the results into single-slot
+decodes, checks lengths, ranges, IMU steps and sequence numbers (an accelerometer spike under
+the implausible-step limit is held at the axis's last value for a sample: tk3 carries no
+checksum), and puts the results into single-slot
 mailboxes: the newest IMU sample (handed to :meth:`FlightCtrl.wait_next`, never queued), the
 newest state of each motor, battery and magnetometer. IMU sample times are rebuilt from the
 sequence number on the board's own clock, mapped onto the host clock by
@@ -77,6 +79,8 @@ Vec3 = tuple[float, float, float]
 Clock = Callable[[], int]
 
 _SEQ_JUMP_RESET = 16  # rotorcraft mk_get_ts: a larger jump resets the time base
+#: the accelerometer's typical step: an exponential average, ~256 samples (0.5 s at 500 Hz)
+ACCEL_STEP_GAIN = 1.0 / 256.0
 
 
 # ------------------------------------------------------------------------------------ errors
@@ -264,6 +268,9 @@ class LinkStats:
     the true specific force was larger (an impact), the sample says too little."""
     late_steps: int
     """IMU steps believed only after their first three samples were dropped as implausible."""
+    accel_spikes_held: int
+    """Accelerometer axes held at their last value for one sample: a jump far beyond the axis's
+    recent sample-to-sample steps (a corrupted byte under the implausible-step limit)."""
     resyncs: int
     imu_overwritten: int
     """Samples replaced in the mailbox before the loop took them."""
@@ -306,6 +313,18 @@ class FlightCtrlConfig:
     max_accel_step_m_s2: float = 20.0
     """The same for the accelerometer, wide enough for touchdown impacts and vibration (2 g per
     sample): it catches the gross corruptions (high bits of the high byte)."""
+    accel_spike_factor: float = 10.0
+    """An accelerometer axis that jumps from its last value by more than this many times its
+    recent typical step (an average of the steps over ~256 samples), and by more than
+    ``accel_spike_floor_m_s2``, is held at the last value for that one sample; the next
+    sample is taken whatever it reads. tk3 frames carry no checksum, and a corrupted byte
+    under the implausible-step limit still kicks an integrated velocity (a 0.5 % corrupted
+    link: ~3 such samples a second, 0.6-0.9 m/s of kicks in 11 s of flight, which a
+    dead-reckoned landing cannot afford). A real step is taken one sample late (at an
+    emulated touchdown, the first sample of the gear's impact). 0 turns it off."""
+    accel_spike_floor_m_s2: float = 1.0
+    """The smallest jump ``accel_spike_factor`` holds (the emulated IMU's steps in flight
+    are ~0.05-0.14 m/s^2; a vibrating airframe's are larger, and the typical step with them)."""
     max_gyro_rad_s: float = 17.5
     """Gyro full scale (±1000 °/s); larger readings are corrupted and dropped."""
     max_accel_m_s2: float = 78.5
@@ -500,6 +519,11 @@ class FlightCtrl:
         self._late_steps = 0
         self._last_imu_raw: tuple[tuple[float, ...], tuple[float, ...]] | None = None
         self._spike_run = 0
+        # accelerometer spike hold (body frame, the filed samples): last value, typical step
+        self._accel_last: tuple[float, float, float] | None = None
+        self._accel_step = [0.0, 0.0, 0.0]
+        self._accel_held = [False, False, False]
+        self._accel_spikes = 0
         self._imu_overwritten = 0
         self._frames_sent = 0
 
@@ -633,11 +657,11 @@ class FlightCtrl:
 
     @property
     def imu_anomalies(self) -> int:
-        """Receive errors, samples kept with a saturated accelerometer and samples the loop
-        never took (overwritten in the mailbox: a late host): every event after which the
-        motion the IMU gave the loop may be short of the real one. Polled by the loop at the
-        MoCap rate, not per tick."""
-        return self.rx_errors + self._saturated + self._imu_overwritten
+        """Receive errors, samples kept with a saturated accelerometer or a held accelerometer
+        spike, and samples the loop never took (overwritten in the mailbox: a late host):
+        every event after which the motion the IMU gave the loop may be short of the real
+        one. Polled by the loop at the MoCap rate, not per tick."""
+        return self.rx_errors + self._saturated + self._imu_overwritten + self._accel_spikes
 
     @property
     def imu_motion_missed(self) -> int:
@@ -774,7 +798,7 @@ class FlightCtrl:
                 garbage_bytes=tk3s.garbage_bytes, frame_errors=tk3s.frame_errors,
                 malformed=self._malformed, implausible=self._implausible,
                 seq_rejected=self._timebase.rejected, accel_saturated=self._saturated,
-                late_steps=self._late_steps,
+                late_steps=self._late_steps, accel_spikes_held=self._accel_spikes,
                 resyncs=self._timebase.resyncs,
                 imu_overwritten=self._imu_overwritten, frames_sent=self._frames_sent,
                 texts=tuple(self._texts), imu_clock=self._timebase.clock())
@@ -970,10 +994,40 @@ class FlightCtrl:
         if stamped is None:
             return
         accel, gyro = cfg.imu_axes.imu_to_body(msg)
+        if cfg.accel_spike_factor > 0.0:
+            accel = self._hold_accel_spike(accel)
         self._imu = ImuSample(stamped[0], stamped[1], t_ns, gyro, accel,
                               self._timebase.period_ns)
         self._imu_count += 1
         self._meters["imu"].add(t_ns)
+
+    def _hold_accel_spike(self, accel: Vec3) -> Vec3:
+        """``accel`` with an axis that jumped far beyond its typical step held at its last
+        value (``accel_spike_factor``); at most one sample in a row per axis."""
+        last = self._accel_last
+        if last is None:
+            self._accel_last = accel
+            return accel
+        cfg = self.config
+        factor, floor = cfg.accel_spike_factor, cfg.accel_spike_floor_m_s2
+        typical, held = self._accel_step, self._accel_held
+        out = list(accel)
+        for i in range(3):
+            step = abs(accel[i] - last[i])
+            limit = max(floor, factor * typical[i])
+            if step > limit and not held[i]:
+                out[i] = last[i]
+                held[i] = True
+                self._accel_spikes += 1
+            else:
+                held[i] = False
+                # the average step, each step counted up to the limit (a spike taken as
+                # real must not widen the limit for the next ones)
+                typical[i] += (min(step, limit) - typical[i]) * ACCEL_STEP_GAIN
+        # the held axes keep their last value, the others move on
+        new = (out[0], out[1], out[2])
+        self._accel_last = new
+        return new
 
     def _on_motor(self, msg: mkm.MotorMessage, t_ns: int) -> None:
         cfg = self.config

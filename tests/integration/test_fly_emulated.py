@@ -142,6 +142,13 @@ def test_that_half_a_percent_byte_corruption_does_not_stop_the_flight(tmp_path: 
     measured = rows[rows["measured"] > 0]
     err_mm = 1e3 * np.linalg.norm(measured["pos_w_m"] - measured["pos_ref_w_m"], axis=1)
     assert err_mm.mean() < 15.0
+    # corrupted accelerometer samples under the implausible-step limit are held by the
+    # driver: they no longer kick the estimate off MoCap (without the hold: 289 of ~1300
+    # poses refused, 10 re-seeds, the estimate 3.3 mm rms off the truth; with it 5, 0, 0.3)
+    assert out.result.estimator_poses_rejected < 0.02 * out.result.counters["poses_fused"]
+    assert out.result.counters.get("reseeds_imu_link", 0) <= 1
+    est_err_mm = 1e3 * np.linalg.norm(measured["est_pos_w_m"] - measured["pos_w_m"], axis=1)
+    assert np.sqrt(np.mean(est_err_mm ** 2)) < 1.0
     # The same flight, bit for bit, on a host two busy processes load: a sample that is only
     # late (the emulator not yet scheduled) is not taken for one the link lost (before, an
     # older receive error did that, the loop stepped the vehicle twice, and each loaded run

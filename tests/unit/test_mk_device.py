@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Iterator
 
 import pytest
@@ -154,12 +155,113 @@ def test_that_an_accelerometer_at_the_frames_limit_is_kept_and_counted_as_an_ano
                                                    .encode()), 2.0 + 2.0 * k)
            for k, a in enumerate(ramp)]
     # Assert: every sample reaches the loop (the clipped ones at the limit), four of them
-    # counted saturated: the loop knows the IMU missed part of that motion
+    # counted saturated: the loop knows the IMU missed part of that motion. The impact's
+    # first sample and the first one down from the limit jump far beyond the resting IMU's
+    # steps: each is held at the value before for that sample (a spike hold; the next
+    # sample is taken), and counted as an anomaly too
     assert all(s is not None for s in got)
-    assert [abs(s.accel_m_s2[2]) for s in got if s is not None][1:5] == \
-        [pytest.approx(mkm.IMU_ACCEL_WIRE_LIMIT_M_S2)] * 4
-    assert fc.link_stats().accel_saturated == 4
-    assert fc.imu_anomalies - before == 4 and fc.rx_errors == 0
+    assert [abs(s.accel_m_s2[2]) for s in got if s is not None] == [
+        pytest.approx(v) for v in (9.81, *[mkm.IMU_ACCEL_WIRE_LIMIT_M_S2] * 5, 9.81)]
+    stats = fc.link_stats()
+    assert stats.accel_saturated == 4 and stats.accel_spikes_held == 2
+    assert fc.imu_anomalies - before == 6 and fc.rx_errors == 0
+
+
+def _accel(seq: int, az: float) -> bytes:
+    return tk3.encode_frame(mkm.ImuMessage(seq & 0xFF, (0.0, 0.0, az), (0.0, 0.0, 0.0)).encode())
+
+
+def _accel_z(fc: FlightCtrl, wire: LoopTransport, clock: FakeClock, az_m_s2: list[float],
+             first_seq: int = 0) -> list[float]:
+    """Body z of the samples the loop gets for board z readings ``az_m_s2`` (the fixture's
+    axes map turns board z to body -z)."""
+    got = [_push(fc, wire, clock, _accel(first_seq + k, az), 2.0 * (first_seq + k))
+           for k, az in enumerate(az_m_s2)]
+    assert all(s is not None for s in got)
+    return [-s.accel_m_s2[2] for s in got if s is not None]
+
+
+def test_that_a_lone_accelerometer_spike_under_the_step_limit_is_held_for_one_sample(
+        link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
+    # Fixture: a resting IMU (0.05 m/s^2 steps), then a corrupted byte of a frame without
+    # checksum: z 6 m/s^2 off for one sample, under the 20 m/s^2 implausible-step limit (a
+    # 0.012 m/s kick to an integrated velocity)
+    fc, wire, clock = link
+    rest = [9.81 + (0.05 if k % 2 else 0.0) for k in range(40)]
+    # Test
+    got = _accel_z(fc, wire, clock, [*rest, 15.81, 9.86, 9.81])
+    # Assert: the spike reads as the value before it, the next sample as itself; held once,
+    # an anomaly for the loop, not a receive error (the sample was delivered)
+    assert got[40:] == [pytest.approx(9.86), pytest.approx(9.86), pytest.approx(9.81)]
+    stats = fc.link_stats()
+    assert stats.accel_spikes_held == 1 and stats.implausible == 0
+    assert fc.imu_anomalies == 1 and fc.rx_errors == 0
+
+
+def test_that_a_real_accelerometer_step_is_taken_one_sample_late(
+        link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
+    # Fixture: a resting IMU, then a step of 6 m/s^2 that stays
+    fc, wire, clock = link
+    rest = [9.81 + (0.05 if k % 2 else 0.0) for k in range(40)]
+    # Test
+    got = _accel_z(fc, wire, clock, [*rest, 15.81, 15.81, 15.86, 15.81])
+    # Assert: held for its first sample only
+    assert got[40:] == [pytest.approx(9.86), pytest.approx(15.81), pytest.approx(15.86),
+                        pytest.approx(15.81)]
+    assert fc.link_stats().accel_spikes_held == 1
+
+
+def test_that_the_spike_hold_widens_to_a_vibrating_airframe(
+        link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
+    # Fixture: vibration at 80 Hz, 4 m/s^2 amplitude, sampled at 500 Hz: steps up to 2.4
+    # m/s^2, above the 1 m/s^2 floor. The limit follows the typical step (10 times its
+    # average), so only the first of them may be held, never the vibration once learnt
+    fc, wire, clock = link
+    vib = [9.81 + 4.0 * math.sin(2.0 * math.pi * 80.0 * 0.002 * k) for k in range(600)]
+    # Test
+    got = _accel_z(fc, wire, clock, vib)
+    # Assert: the last 400 samples (0.8 s) untouched; few held while it learnt
+    assert got[200:] == [pytest.approx(v, abs=0.001) for v in vib[200:]]
+    assert fc.link_stats().accel_spikes_held < 60
+
+
+def test_that_the_spike_hold_can_be_turned_off() -> None:
+    wire = LoopTransport("loop://test", read_timeout_s=0.01)
+    clock = FakeClock()
+    fc = FlightCtrl(wire, FlightCtrlConfig(imu_axes=ImuAxes(axis=(1, 0, 2), sign=(1, 1, -1)),
+                                           accel_spike_factor=0.0), clock=clock)
+    fc.start()
+    try:
+        got = _accel_z(fc, wire, clock, [9.81] * 10 + [15.81, 9.81])
+        assert got[10] == pytest.approx(15.81) and fc.link_stats().accel_spikes_held == 0
+    finally:
+        fc.close()
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(-30.0, 30.0), min_size=2, max_size=30))
+def test_that_the_spike_hold_gives_a_reading_or_the_one_before(az_m_s2: list[float]) -> None:
+    # Property: whatever the readings (each within the full scale, steps within the
+    # implausible-step limit or not), every delivered value is the sample's own reading or
+    # the value delivered before it, never two held in a row
+    wire = LoopTransport("loop://test", read_timeout_s=0.01)
+    clock = FakeClock()
+    fc = FlightCtrl(wire, FlightCtrlConfig(imu_axes=ImuAxes(axis=(1, 0, 2), sign=(1, 1, -1))),
+                    clock=clock)
+    fc.start()
+    try:
+        out: list[tuple[float, float]] = []   # (reading, delivered)
+        for k, az in enumerate(az_m_s2):
+            s = _push(fc, wire, clock, _accel(k, az), 2.0 * k)
+            if s is not None:
+                out.append((round(az, 3), -s.accel_m_s2[2]))
+        for (_, before), (own, now), in itertools.pairwise(out):
+            assert now == pytest.approx(own, abs=1e-9) or now == before
+        held = [now != pytest.approx(own, abs=1e-9) for own, now in out]
+        assert not any(a and b for a, b in itertools.pairwise(held))
+        assert fc.link_stats().accel_spikes_held == sum(held)
+    finally:
+        fc.close()
 
 
 def test_that_the_imu_axes_map_board_to_body(
