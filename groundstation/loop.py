@@ -110,6 +110,9 @@ IMU_LANDED_S = 1.0
 #: without checksum passes corrupted samples: a 0.5 % corrupted one spikes about every
 #: 0.1 s, and one spike restarted the whole second)
 IMU_STILL_GRACE_S = 0.02
+#: a failsafe landing whose IMU has read the ground's support this long no longer moves
+#: horizontally: the reference's horizontal position and velocity follow the estimate
+GROUND_CONTACT_S = 0.1
 #: session time past ``max_flight_s`` after which a landing that has not touched down is cut
 TIME_LIMIT_CUT_S = 120.0
 #: lockstep: wall time after which a sample counts as lost, and the slice to check the link.
@@ -149,12 +152,13 @@ DEAD_RECKON_LOOKBACK_S = 3.0
 #: before the first refused pose (the poses pulled the estimate for the refusal's first frames)
 MOCAP_OFF_LEAD_S = 0.5
 ANOMALOUS_LINK_S = 1.0
-#: a blind landing's reference this far under the ground: below BLIND_THRUST_FRACTION of
-#: the weight, the IMU held still within BLIND_STILL_ACCEL_M_S2 of g for IMU_LANDED_S is a
-#: touchdown (in the air that thrust reads 0.1 g short of g). A dead reckoning drifting on
-#: the ground kept the thrust at 0.75-0.9 of the weight, above the 0.6 of the plain rule,
-#: the controller chasing it until the vehicle flipped.
-BLIND_STILL_SUNK_M = 0.3
+#: a blind landing: below BLIND_THRUST_FRACTION of the weight, the IMU held still within
+#: BLIND_STILL_ACCEL_M_S2 of g for IMU_LANDED_S is a touchdown (in the air that thrust reads
+#: 0.1 g short of g). A dead reckoning drifting on the ground kept the thrust at 0.75-0.9 of
+#: the weight, above the 0.6 of the plain rule, the controller chasing it until the vehicle
+#: flipped. (The rule once also waited for the reference to sink 0.3 m under the ground: at
+#: the touchdown's 0.12 m/s that is 2.4 s on the ground, and a vehicle rocked on its gear
+#: within 2 s, chasing its estimate's drift, never to read still again.)
 BLIND_THRUST_FRACTION = 0.9
 BLIND_STILL_ACCEL_M_S2 = 0.5
 CHECKPOINT_EVERY_S = 0.5
@@ -611,13 +615,11 @@ class FlightLoop:
             ground_since_s = (ground_since_s or t_s) if near_ground else None
             # the IMU's own touchdown, whatever the estimate says (a frozen or drifting one
             # never comes near the ground): at low thrust, held still (the ground carries it);
-            # a blind landing also once its reference is BLIND_STILL_SUNK_M under the ground
-            # (a dead reckoning drifting on the ground kept the thrust up: the controller
-            # chased it until the vehicle flipped)
+            # a blind landing already below BLIND_THRUST_FRACTION of the weight (a dead
+            # reckoning drifting on the ground kept the thrust up)
             if sm.state is FlightState.LANDING and tick is not None and (
                     (force_cmd_b[2] < self._low_thrust_n and self._imu_still(imu))
                     or (self.mocap_distrusted and tick.ref.segment == -1
-                        and tick.ref.pos_w_m[2] < opts.ground_z_m - BLIND_STILL_SUNK_M
                         and force_cmd_b[2] < self._blind_thrust_n
                         and self._imu_still(imu, BLIND_STILL_ACCEL_M_S2))):
                 still_since_s = t_s if still_since_s is None else still_since_s
@@ -677,6 +679,13 @@ class FlightLoop:
                                           ref_offset_w_m=self._ref_offset_w_m)
             elif directive.reference is ReferenceSource.LAND_HERE and land_here is not None:
                 ref = land_here.reference(t_s, alpha)
+                if still_since_s is not None and t_s - still_since_s >= GROUND_CONTACT_S:
+                    # on the ground: no horizontal chase of the estimate (a dead reckoning
+                    # drifts there; the attitude a horizontal force needs rocks it on its gear)
+                    p, v = est_state.pos_w_m, est_state.vel_w_m_s
+                    ref = replace(ref, pos_w_m=(p[0], p[1], ref.pos_w_m[2]),
+                                  vel_w_m_s=(v[0], v[1], ref.vel_w_m_s[2]),
+                                  acc_w_m_s2=(0.0, 0.0, ref.acc_w_m_s2[2]))
                 tick = self.computer.step(tm, est_state, alpha, ref=ref, hold_tilt=True,
                                           force_ext_w_n=force_ext)
             if servo_cycle:  # before set_tilt: the cycle wrote the previous goal

@@ -17,8 +17,9 @@ import pytest
 
 from config.schema import ConfigError, load_config_text
 from controller.missions import MAX_TOUCHDOWN_SPEED_M_S, MISSION_SCHEMA, Mission, MissionSpec
+from groundstation.configs import load_vehicle
 from groundstation.flight import FlightState
-from groundstation.loop import ENDED_ALOFT_S
+from groundstation.loop import BLIND_THRUST_FRACTION, ENDED_ALOFT_S, GROUND_CONTACT_S
 from groundstation.record import read_record
 from groundstation.session import FlightSession
 from groundstation.session_config import load_session
@@ -222,6 +223,49 @@ def test_that_a_tracker_frozen_in_a_steady_hover_is_found_by_a_velocity_the_imu_
     _, speed = _contact(rec)
     assert speed < MAX_TOUCHDOWN_SPEED_M_S
     assert np.hypot(*(rec["pos_w_m"][-1][:2] - rec["pos_w_m"][0][:2])) < 0.15
+
+
+def test_that_a_dead_reckoned_landing_stands_still_on_the_ground_and_disarms_there(
+        tmp_path: Path) -> None:
+    # Fixture: seed 1, MoCap frozen at 6 s in the hover. The landing runs on the IMU alone
+    # and its estimate drifts on the ground (0.1 m in the first second). Chasing it, the
+    # controller asked for the attitude a horizontal force needs: 5 N m of torque 0.8 s after
+    # the touchdown, the motors saturated, the vehicle rocked on its gear (no longer still to
+    # the IMU) and the IMU rate check cut the motors 5 s later, the vehicle 1.4 m from where it
+    # had landed. The touchdown rule also waited for the reference to sink 0.3 m below the
+    # ground (2.4 s at the touchdown's 0.12 m/s)
+    events: list[str] = []
+    out = fly(tmp_path, seed=1, faults="mocap-freeze@6", on_event=events.append)
+    trs = _transitions(out)
+    assert next(tr for tr in trs if tr[2] is FlightState.LANDING)[3].startswith(
+        "failsafe: MoCap and IMU disagree")
+    assert not any(tr[2] is FlightState.CUT for tr in trs)
+    t_end, frm, to, why = trs[-1]
+    assert (frm, to, why) == (FlightState.LANDING, FlightState.DISARMED,
+                              "touchdown (IMU: still at low thrust)")
+    rec = read_record(out.record_path).rows
+    contact, speed = _contact(rec)
+    assert speed < MAX_TOUCHDOWN_SPEED_M_S
+    t = rec["t_s"]
+    # disarmed 1 s (the IMU held still) after the thrust fell under 0.9 of the weight: it
+    # falls from the weight as the reference sinks past the estimate (0.3 s here)
+    assert t_end - t[contact] < 1.6
+    # on the ground: once the ground's support has been felt for GROUND_CONTACT_S (the IMU
+    # still, the thrust under 0.9 of the weight), no horizontal chase: no torque beyond
+    # holding the attitude (1.3 N m in the 0.25 s before; 5 N m 0.8 s after the contact
+    # without the hold), the gear flat on the ground
+    weight_n = load_vehicle("fasthex").mass_kg * 9.81
+    low = contact + int(np.argmax(rec["u_f_b_n"][contact:, 2] < BLIND_THRUST_FRACTION
+                                  * weight_n))
+    felt = low + int((GROUND_CONTACT_S + 0.01) / TICK_S)
+    assert t[felt] - t[contact] < 0.5
+    torque = np.linalg.norm(rec["u_tau_b_n_m"][felt:], axis=1)
+    assert np.max(torque) < 0.5
+    q = rec["q_wb"][contact:]
+    tilt_deg = np.degrees(2.0 * np.arcsin(np.minimum(1.0, np.hypot(q[:, 1], q[:, 2]))))
+    assert np.max(tilt_deg) < 1.0
+    moved = np.hypot(*(rec["pos_w_m"][-1][:2] - rec["pos_w_m"][contact][:2]))
+    assert moved < 0.005
 
 
 def test_that_a_dead_reckoned_landing_that_never_touches_down_is_cut(
