@@ -62,7 +62,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from enum import IntEnum
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 from urllib.parse import parse_qs, urlparse
 
 from config.schema import ConfigValueError, spec
@@ -581,9 +581,9 @@ def read_servo(uri: str, latency_timer_ms: float = 16.0,
     link.open()
     try:
         ident = _identify(link)
-        torque, _ = link.read(Reg.TORQUE_ENABLE, 2)  # Torque Enable (24), LED (25)
-        goal = to_signed16(_u16(link.read(Reg.GOAL_POSITION, 2)[0], 0))
-        data, _ = link.read(Reg.PRESENT_POSITION, STATE_BLOCK_LENGTH)
+        torque, _ = _again(link.read, Reg.TORQUE_ENABLE, 2)  # Torque Enable (24), LED (25)
+        goal = to_signed16(_u16(_again(link.read, Reg.GOAL_POSITION, 2)[0], 0))
+        data, _ = _again(link.read, Reg.PRESENT_POSITION, STATE_BLOCK_LENGTH)
     finally:
         link.drop()
     return ServoReading(
@@ -594,23 +594,33 @@ def read_servo(uri: str, latency_timer_ms: float = 16.0,
         led_on=bool(torque[1]))
 
 
-#: bench identification: attempts at the first PING (a loaded host or a servo that was just
-#: powered may miss one reply; the SDK's own wait is only ~34 ms)
+#: bench identification and status: attempts at each of their requests, all of them reads (a
+#: loaded host or a servo that was just powered may miss a reply; the SDK's own wait is only
+#: ~34 ms: a `servo status` beside a test suite on 2 cores lost the reply to its first READ)
 IDENTIFY_ATTEMPTS = 3
+
+_T = TypeVar("_T")
+
+
+def _again(request: Callable[..., _T], *args: Any) -> _T:
+    """``request(*args)``, asked up to IDENTIFY_ATTEMPTS times while the servo does not
+    answer or answers garbled (a lost port is not asked again)."""
+    for attempt in range(IDENTIFY_ATTEMPTS - 1):
+        try:
+            return request(*args)
+        except _PortLostError:
+            raise
+        except ServoCommError:
+            log.debug("servo request %s failed (attempt %d)", request.__name__, attempt + 1)
+    return request(*args)
 
 
 def _identify(link: _Link) -> ServoIdentity:
-    for attempt in range(IDENTIFY_ATTEMPTS):
-        try:
-            model, _ = link.ping()
-            break
-        except ServoCommError:
-            if attempt == IDENTIFY_ATTEMPTS - 1:
-                raise
-    firmware = link.read(Reg.FIRMWARE_VERSION, 1)[0][0]
-    eeprom, _ = link.read(Reg.RETURN_DELAY_TIME, 5)
-    srl = link.read(Reg.STATUS_RETURN_LEVEL, 1)[0][0]
-    present = to_signed16(_u16(link.read(Reg.PRESENT_POSITION, 2)[0], 0))
+    model, _ = _again(link.ping)
+    firmware = _again(link.read, Reg.FIRMWARE_VERSION, 1)[0][0]
+    eeprom, _ = _again(link.read, Reg.RETURN_DELAY_TIME, 5)
+    srl = _again(link.read, Reg.STATUS_RETURN_LEVEL, 1)[0][0]
+    present = to_signed16(_u16(_again(link.read, Reg.PRESENT_POSITION, 2)[0], 0))
     return ServoIdentity(
         device=link.uri, dxl_id=link.target.dxl_id, model_number=model,
         firmware_version=firmware, mode=mode_from_limits(_u16(eeprom, 1), _u16(eeprom, 3)),

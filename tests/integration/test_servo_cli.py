@@ -72,6 +72,42 @@ def test_that_servo_status_writes_nothing_to_the_servo(
     assert "torque off" in out and "not configured since power-up" in out
 
 
+class _MissingEveryThirdReply(EmulatedMX28):
+    """An MX-28 whose every third reply never arrives (a loaded host: the SDK's ~34 ms wait
+    for a status packet ran out; seen beside the test suite on 2 cores). The SDK's PING is
+    two requests (the PING, then a READ of the model number)."""
+
+    replies_dropped = 0
+    _replies_made = 0
+
+    def _schedule(self, reply: bytes | None) -> None:
+        if reply is not None:
+            self._replies_made += 1
+            if self._replies_made % 3 == 0:
+                self.replies_dropped += 1
+                return
+        super()._schedule(reply)
+
+
+def test_that_servo_status_asks_again_when_a_reply_is_lost(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Fixture: a servo that misses every third reply: the PING is answered, the first READ
+    # is not (before, only the PING was asked again: `servo status` failed with "read
+    # RETURN_DELAY_TIME: There is no status packet!")
+    vehicle = BenchVehicle(max_tilt_rate_rad_s=math.radians(100.0))
+    with _MissingEveryThirdReply(vehicle, lock=threading.Lock(),
+                                 link_path=tmp_path / "tilt-servo", drive_clock=True,
+                                 zero_offset_steps=1024) as emu:
+        # Test
+        code = main(["servo", "status", "--uri", f"serial://{emu.path}?baud=1000000&id=1",
+                     "--zero-steps", "1024"])
+        # Assert: each lost reply asked again, the servo identified as it is
+        assert code == 0
+        assert emu.replies_dropped >= 4
+    out = capsys.readouterr().out
+    assert "model 29 firmware 41 id 1 mode joint" in out and "tilt 0.00 deg" in out
+
+
 def test_that_a_move_outside_the_tilt_range_is_an_error(
         capsys: pytest.CaptureFixture[str]) -> None:
     for deg in ("80", "-1", "nan"):
