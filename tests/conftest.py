@@ -34,8 +34,8 @@ from groundstation.configs import load_vehicle
 #: test modules (paths below tests/) whose every test runs alone: they assert on real time
 #: (rates, latencies, clock estimates, the 100 ms a kill may lose, IMU gaps on the host clock,
 #: servo reply timeouts); everything else shares the machine. The stop-signal tests
-#: (test_fly_signals, test_fly_sigint) share it: their lockstep flights wait for the record to
-#: show the vehicle airborne before each signal, so a loaded machine only slows them, as a
+#: (test_fly_signals) share it: their lockstep flights wait for the record to show the
+#: vehicle airborne before each signal, so a loaded machine only slows them, as a
 #: user's busy laptop would. Single tests of shared modules that fly or run against a realtime
 #: device carry the ``exclusive`` marker themselves (test_bench_leave_devices' bench tests, the
 #: realtime flights of test_fly_signals and test_fly_emulated: two realtime flights side by
@@ -77,7 +77,6 @@ LONG_SHARED_MODULES = (
     "integration/test_scenario_fly_vs_simulate.py",
     "integration/test_fly_console.py",
     "integration/test_fly_signals.py",
-    "integration/test_fly_sigint.py",
     "integration/test_bench_leave_devices.py",
     "integration/test_mocap_qtm.py",
     "integration/test_simulate_mission_kinds.py",

@@ -170,18 +170,6 @@ def cpu_hogs(n: int) -> Iterator[None]:
             hog.wait()
 
 
-def test_that_a_silent_servo_holds_the_tilt_and_the_flight_goes_on(tmp_path: Path) -> None:
-    out = fly(tmp_path, faults="servo-silent@5.0", servo_action="hold")
-    assert any("tilt servo fault: holding the measured tilt" in f for f in out.result.faults)
-    assert states(out)[-1] is FlightState.DISARMED
-
-
-def test_that_a_silent_servo_lands_when_configured_to(tmp_path: Path) -> None:
-    out = fly(tmp_path, faults="servo-silent@5.0", servo_action="land")
-    assert any(t.reason == "failsafe: tilt servo fault" for t in out.result.transitions)
-    assert states(out)[-1] is FlightState.DISARMED
-
-
 def test_that_a_geofence_breach_lands(tmp_path: Path) -> None:
     out = fly(tmp_path, zmax=0.6)  # the mission climbs to 0.8 m
     assert any(t.reason.startswith("failsafe: geofence breached") for t in out.result.transitions)
