@@ -336,6 +336,9 @@ class FlightLoop:
         self._consistency = ConsistencyMonitor(self.ukf.cfg.gravity_m_s2)
         self._monitor_bad_since_s: float | None = None
         self._monitor_verdict: Comparison | None = None
+        #: the last fused pose (capture time, position, attitude), compared with the IMU at
+        #: the next tick
+        self._compare_next: tuple[float, tuple[float, ...], tuple[float, ...]] | None = None
         #: the IMU link's anomaly counts at the last pose (ImuLink.imu_anomalies and
         #: imu_motion_missed)
         self._imu_anomalies = 0
@@ -709,7 +712,15 @@ class FlightLoop:
             if flying:
                 extremes.add(h, gap_s, self.imu_rate_fraction)
             # 3. (update part) the newest MoCap frame, fused for the next tick: its decode and
-            # fusion (~0.1 ms on a frame tick) stay off the path from IMU sample to command
+            # fusion (~0.1 ms on a frame tick) stay off the path from IMU sample to command.
+            # The last frame's comparison with the IMU alone runs a tick later, on a tick
+            # without a frame: one frame tick carrying decode, fusion and comparison set the
+            # compute p99; in lockstep, a tick without one finishes its work while the board
+            # computes the next sample (it waits anyway), so the comparison costs no time.
+            if self._compare_next is not None:
+                compare, self._compare_next = self._compare_next, None
+                if not self.mocap_distrusted:
+                    self._compare_with_imu(t_s, *compare, est_state)
             if opts.lockstep:
                 self.pose.handle_received()
             self._take_pose(t0_s, t_s, est_state)
@@ -829,7 +840,8 @@ class FlightLoop:
         """Fuse the newest pose if it is a new frame. The UKF replays from the capture time; it
         needs one IMU sample first (its clock starts with the first prediction). A re-seed
         from armed on moves the mission's reference by the estimate's step (``est``: this
-        tick's estimate, before it)."""
+        tick's estimate, before it). A fused pose is compared with the IMU alone at the next
+        tick (``_compare_next``)."""
         pose = self.pose.latest()
         if pose is None or pose.frame_number == self._last_frame:
             return
@@ -848,7 +860,7 @@ class FlightLoop:
             if verdict is PoseVerdict.RESET:
                 self._judge_reset(t_s, cap_s, est)
             elif verdict is PoseVerdict.ACCEPTED or verdict is PoseVerdict.REJECTED:
-                self._compare_with_imu(t_s, cap_s, pose.pos_w_m, pose.q_wb, est)
+                self._compare_next = (cap_s, pose.pos_w_m, pose.q_wb)  # the next tick's
             self._last_pose_t_s = cap_s
             self._counters["poses_fused"] += 1
 
