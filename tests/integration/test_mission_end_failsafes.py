@@ -312,3 +312,61 @@ def test_that_a_dead_reckoned_landing_that_never_touches_down_is_cut(
     rec = read_record(tmp_path / "lost.fhr").rows
     assert rec["pos_w_m"][-1][2] > GROUND_Z_M + 0.1  # truth: still up when cut (the bound)
     assert max(rec["spin_hz"][-1]) == 0.0
+
+
+def test_that_a_blind_landing_presses_on_the_ground_at_its_impact_and_not_at_a_jolt_aloft(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # Fixture: seed 5, tracker frozen at 6 s on a 0.5 % corrupted IMU link: a blind landing
+    # whose dead reckoning still sinks at ~0.07 m/s after the touchdown. Without the impact's
+    # press the thrust stayed at 0.95-0.98 of the weight on the ground (over the touchdown
+    # rule's 0.9), the controller chased the estimate's drift (0.35 m/s sideways, its attitude
+    # 4-6 deg off), rocked the vehicle on its gear to 56 deg and the IMU rate check cut it
+    # 1.1 s after the touchdown. A jolt on the IMU at 8.3 s, 0.5 m up (+4.5 m/s^2 on z for two
+    # samples, the touchdown's impact read +5.7 for three), is not the ground: the press it
+    # starts reads no ground's support and ends. (The jolt also kicks the dead reckoning: with
+    # +6 m/s^2 for three samples the touchdown came at 0.20 m/s, with or without the press.)
+    import dataclasses
+
+    import groundstation.loop as loop_mod
+
+    jolt_seq = range(4150, 4152)  # 8.300-8.302 s
+    original = loop_mod.FlightLoop._next_imu
+
+    def jolted(self: loop_mod.FlightLoop, timeout_s: float) -> object:
+        imu = original(self, timeout_s)
+        if imu is not None and imu.seq in jolt_seq:
+            ax, ay, az = imu.accel_m_s2
+            imu = dataclasses.replace(imu, accel_m_s2=(ax, ay, az + 4.5))
+        return imu
+
+    monkeypatch.setattr(loop_mod.FlightLoop, "_next_imu", jolted)
+    events: list[str] = []
+    # Test
+    out = fly(tmp_path, seed=5, faults="mocap-freeze@6", corrupt=0.005, on_event=events.append)
+    # Assert: the jolt pressed for IMPACT_CONFIRM_S, then the landing went on; the touchdown's
+    # impact pressed, the IMU read the ground's support, disarmed standing, level, in place
+    impacts = [float(e.split(" s ")[0]) for e in events if "the IMU felt an impact" in e]
+    aloft = [float(e.split(" s ")[0]) for e in events if "not the ground" in e]
+    assert len(impacts) == 2 and len(aloft) == 1, events
+    assert impacts[0] == pytest.approx(8.302, abs=0.003)
+    assert aloft[0] - impacts[0] == pytest.approx(loop_mod.IMPACT_CONFIRM_S, abs=0.003)
+    trs = _transitions(out)
+    assert not any(tr[2] is FlightState.CUT for tr in trs), trs
+    assert trs[-1][1:] == (FlightState.LANDING, FlightState.DISARMED,
+                           "touchdown (IMU: still at low thrust)")
+    rec = read_record(out.record_path).rows
+    t = rec["t_s"]
+    contact, speed = _contact(rec)
+    assert speed < MAX_TOUCHDOWN_SPEED_M_S
+    assert impacts[1] - t[contact] < 0.05
+    # pressed: the thrust under 0.8 of the weight from 0.05 s after the touchdown on (without
+    # the press it stayed at 0.95-0.98 of it for 0.4 s, then the rocking began)
+    weight_n = load_vehicle("fasthex").mass_kg * 9.81
+    pressed = rec["u_f_b_n"][contact + int(0.05 / TICK_S):, 2]
+    assert np.max(pressed) < 0.8 * weight_n
+    assert trs[-1][0] - t[contact] < 1.6
+    q = rec["q_wb"][contact + int(0.1 / TICK_S):]  # after the touchdown's own rocking
+    tilt_deg = np.degrees(2.0 * np.arcsin(np.minimum(1.0, np.hypot(q[:, 1], q[:, 2]))))
+    assert np.max(tilt_deg) < 2.0
+    moved = np.hypot(*(rec["pos_w_m"][-1][:2] - rec["pos_w_m"][contact][:2]))
+    assert moved < 0.005
