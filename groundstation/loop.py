@@ -656,10 +656,8 @@ class FlightLoop:
                     self.event_sink(f"{t_s:.3f} s the IMU felt an impact ({excess:+.1f} m/s^2 "
                                     "over the thrust): the landing presses on the ground")
             elif impact_t_s is not None and impact_support < IMPACT_SUPPORT_SAMPLES:
-                ax, ay, az = imu.accel_m_s2
-                supported = force_cmd_b[2] < self._blind_thrust_n and abs(
-                    math.sqrt(ax * ax + ay * ay + az * az) - self.params.gravity_m_s2
-                ) < BLIND_STILL_ACCEL_M_S2
+                supported = force_cmd_b[2] < self._blind_thrust_n and self._reads_g(
+                    imu, BLIND_STILL_ACCEL_M_S2)
                 if t_s - impact_t_s >= IMPACT_SETTLE_S:
                     impact_support = impact_support + 1 if supported else 0
                 if impact_support < IMPACT_SUPPORT_SAMPLES and \
@@ -1018,12 +1016,16 @@ class FlightLoop:
     def _imu_still(self, imu: Any, accel_tol_m_s2: float = IMU_STILL_ACCEL_M_S2) -> bool:
         """This IMU sample reads a vehicle at rest: its specific force is g (within
         ``accel_tol_m_s2``), its rates are small."""
-        ax, ay, az = imu.accel_m_s2
         gx, gy, gz = imu.gyro_rad_s
-        g = self.params.gravity_m_s2
-        return (abs(math.sqrt(ax * ax + ay * ay + az * az) - g) < accel_tol_m_s2
-                and abs(gx) < IMU_STILL_RATE_RAD_S and abs(gy) < IMU_STILL_RATE_RAD_S
-                and abs(gz) < IMU_STILL_RATE_RAD_S)
+        return (self._reads_g(imu, accel_tol_m_s2) and abs(gx) < IMU_STILL_RATE_RAD_S
+                and abs(gy) < IMU_STILL_RATE_RAD_S and abs(gz) < IMU_STILL_RATE_RAD_S)
+
+    def _reads_g(self, imu: Any, accel_tol_m_s2: float) -> bool:
+        """This IMU sample's specific force is g within ``accel_tol_m_s2``: something carries
+        the vehicle's weight (at rest, or pressed at low thrust on the ground)."""
+        ax, ay, az = imu.accel_m_s2
+        return abs(math.sqrt(ax * ax + ay * ay + az * az)
+                   - self.params.gravity_m_s2) < accel_tol_m_s2
 
     def _near_ground(self, est: VehicleState) -> bool:
         # height only: the contact's impacts make the estimated vertical speed jumpy, and a
