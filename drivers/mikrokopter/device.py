@@ -309,7 +309,12 @@ class FlightCtrlConfig:
     """Largest plausible change of a gyro axis between two samples (the vehicle's angular
     acceleration reaches ~60 rad/s^2, 0.12 rad/s per 2 ms). tk3 frames carry no checksum: a
     larger jump is a corrupted byte (a high byte changes a value by >= 0.256 rad/s) and the
-    sample is dropped as implausible; 3 in a row are accepted (a real step)."""
+    sample is dropped as implausible. The check is against the last two samples taken (a
+    corrupted one just under the limit, once taken, does not make the next good ones
+    implausible). A real step: three dropped in a row, each within the limits of the one
+    before, then a fourth within them, is taken (a run of dropped samples once accepted the
+    fourth whatever it read, and a corrupted byte there put 15.3 rad/s in the gyro for 8 ms:
+    a 7 deg turn the vehicle never made, which the flight then corrected for real)."""
     max_accel_step_m_s2: float = 20.0
     """The same for the accelerometer, wide enough for touchdown impacts and vibration (2 g per
     sample): it catches the gross corruptions (high bits of the high byte)."""
@@ -355,6 +360,21 @@ class FlightCtrlConfig:
 
 
 # ------------------------------------------------------------------------------------ streams
+
+
+#: one IMU sample as the board sent it (gyro, accelerometer), for the implausible-step check
+_RawImu = tuple[tuple[float, ...], tuple[float, ...]]
+
+
+def _within_steps(g: Sequence[float], a: Sequence[float], ref: _RawImu | None,
+                  g_step: float, a_step: float) -> bool:
+    """Whether a sample is within the per-sample step limits of ``ref`` (False without one)."""
+    if ref is None:
+        return False
+    rg, ra = ref
+    return (abs(g[0] - rg[0]) <= g_step and abs(g[1] - rg[1]) <= g_step
+            and abs(g[2] - rg[2]) <= g_step and abs(a[0] - ra[0]) <= a_step
+            and abs(a[1] - ra[1]) <= a_step and abs(a[2] - ra[2]) <= a_step)
 
 
 class _RateMeter:
@@ -414,7 +434,8 @@ class _ImuTimeBase:
     A sample whose sequence number is not the next one is accepted as a gap only if at most
     16 samples are missing *and* enough time passed for them; otherwise it is held as a suspect
     (a corrupted sequence byte looks the same) and dropped, and the next sample that continues
-    the suspect's sequence resynchronises the time base.
+    the suspect's sequence resynchronises the time base, unless it is at most 16 behind the
+    counter (the stream catching up after a sequence byte corrupted ahead of it).
     """
 
     def __init__(self, period_ns: int) -> None:
@@ -434,7 +455,12 @@ class _ImuTimeBase:
         gap = (seq8 - self.count - 1) & 0xFF
         if gap == 0:
             count = self.count + 1
-        elif self.suspect is not None and seq8 == (self.suspect + 1) & 0xFF:
+        elif (self.suspect is not None and seq8 == (self.suspect + 1) & 0xFF
+              and (self.count - seq8) & 0xFF > _SEQ_JUMP_RESET):
+            # (A continuation at or just behind the counter is not a resync: the sample taken
+            # last had a corrupted sequence byte ahead of the stream, 84 read as 86, and a
+            # resync on the real 85, 86 moved the counter a whole wrap, 0.512 s, ahead. Its
+            # samples are dropped until the stream passes the counter.)
             self.resyncs += 1
             self.missing += (seq8 - self.count - 1) & 0xFF
             return self._reset(self.count + 1 + ((seq8 - self.count - 1) & 0xFF), seq8,
@@ -517,8 +543,12 @@ class FlightCtrl:
         self._implausible = 0
         self._saturated = 0
         self._late_steps = 0
-        self._last_imu_raw: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+        # the implausible-step check: the last two samples taken (raw), the run of dropped
+        # samples that may be a real step and its newest sample
+        self._last_imu_raw: _RawImu | None = None
+        self._prev_imu_raw: _RawImu | None = None
         self._spike_run = 0
+        self._step_candidate: _RawImu | None = None
         # accelerometer spike hold (body frame, the filed samples): last value, typical step
         self._accel_last: tuple[float, float, float] | None = None
         self._accel_step = [0.0, 0.0, 0.0]
@@ -974,18 +1004,30 @@ class FlightCtrl:
             self._implausible += 1
             return
         last = self._last_imu_raw
-        if last is not None and self._spike_run < 3:
+        if last is not None:
             (lgx, lgy, lgz), (lax, lay, laz) = last
             g_step, a_step = cfg.max_gyro_step_rad_s, cfg.max_accel_step_m_s2
-            if (abs(gx - lgx) > g_step or abs(gy - lgy) > g_step or abs(gz - lgz) > g_step
+            if ((abs(gx - lgx) > g_step or abs(gy - lgy) > g_step or abs(gz - lgz) > g_step
                     or abs(ax - lax) > a_step or abs(ay - lay) > a_step
-                    or abs(az - laz) > a_step):
-                self._implausible += 1
-                self._spike_run += 1
-                return
-        if self._spike_run >= 3:
-            self._late_steps += 1       # the three dropped samples were a real step
+                    or abs(az - laz) > a_step)
+                    and not _within_steps(g, a, self._prev_imu_raw, g_step, a_step)):
+                # Implausible against the last two samples taken (the one before the last:
+                # a corrupted sample just under the limits was taken and the link is back).
+                # A real step is three dropped samples in a row, each near the one before,
+                # and a fourth near them; a run broken by a sample far from the one before
+                # starts again from it (a corrupted sample ending a run is not a step).
+                if _within_steps(g, a, self._step_candidate, g_step, a_step):
+                    self._spike_run += 1
+                else:
+                    self._spike_run = 1
+                self._step_candidate = (g, a)
+                if self._spike_run <= 3:
+                    self._implausible += 1
+                    return
+                self._late_steps += 1   # the three dropped samples were a real step
         self._spike_run = 0
+        self._step_candidate = None
+        self._prev_imu_raw = last
         self._last_imu_raw = (g, a)
         lim = mkm.IMU_ACCEL_WIRE_LIMIT_M_S2
         if abs(ax) >= lim or abs(ay) >= lim or abs(az) >= lim:
@@ -995,7 +1037,14 @@ class FlightCtrl:
             return
         accel, gyro = cfg.imu_axes.imu_to_body(msg)
         if cfg.accel_spike_factor > 0.0:
+            spikes = self._accel_spikes
             accel = self._hold_accel_spike(accel)
+            if self._accel_spikes != spikes and last is not None:
+                # A held spike is not the reference of the next implausible-step check: its
+                # accelerometer reading was corrupted (a 0.5 % corrupted link once sent -5.9,
+                # held, then -25.6 m/s^2, 19.7 from it and taken: 0.15 m/s kicked into the
+                # estimate, which the controller then flew for real)
+                self._last_imu_raw = (g, last[1])
         self._imu = ImuSample(stamped[0], stamped[1], t_ns, gyro, accel,
                               self._timebase.period_ns)
         self._imu_count += 1

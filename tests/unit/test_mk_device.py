@@ -112,6 +112,29 @@ def test_that_a_long_outage_resynchronises_on_two_consecutive_samples(
     assert fc.link_stats().resyncs == 1
 
 
+def test_that_a_sequence_byte_corrupted_ahead_does_not_move_the_clock_a_wrap_ahead(
+        link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
+    # Fixture: a 0.5 % corrupted link (seed 14, no other fault): sample 84's sequence byte
+    # read 86 (one bit), taken as two lost samples; the real 85 was then a suspect, and the
+    # real 86 continuing it resynchronised the counter 256 samples ahead (0.512 s: the
+    # estimator predicted over half a second at once and the flight ended blind)
+    fc, wire, clock = link
+    for k in range(84):
+        _push(fc, wire, clock, _imu(k), 2.0 * k)
+    # Test
+    ahead = _push(fc, wire, clock, _imu(86), 2.0 * 84 + 4.0)  # 84, corrupted, late enough
+    real = [_push(fc, wire, clock, _imu(k), 2.0 * k + 4.0) for k in (85, 86, 87, 88)]
+    # Assert: 85 and 86 dropped (at or behind the counter), 87 and 88 taken as the next
+    # samples, two periods after the corrupted one at most
+    assert ahead is not None and ahead.seq == 86
+    assert real[:2] == [None, None]
+    assert real[2] is not None and real[3] is not None
+    assert real[2].t_ns - ahead.t_ns == pytest.approx(2 * MS, abs=0.01 * MS)
+    assert real[3].t_ns - ahead.t_ns == pytest.approx(4 * MS, abs=0.01 * MS)
+    stats = fc.link_stats()
+    assert stats.resyncs == 0 and stats.seq_rejected == 2
+
+
 def test_that_wrong_lengths_and_out_of_range_values_never_reach_the_caller(
         link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
     fc, wire, clock = link
@@ -141,30 +164,74 @@ def test_that_a_lone_imu_jump_is_dropped_and_three_in_a_row_are_taken_as_real(
     assert fc.link_stats().implausible == 4
 
 
+def test_that_a_corrupted_sample_ending_a_run_of_dropped_ones_is_not_taken_as_a_step(
+        link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
+    # Fixture: a 0.5 % corrupted link once gave this (seed 16 of the corrupted freeze
+    # sweep): one sample 0.24 rad/s off (under the 0.25 rad/s limit: taken), so the next good
+    # samples jumped 0.26-0.32 rad/s from it and were dropped; after three of them the
+    # fourth was taken whatever it read, and that one was corrupted too: 15.3 rad/s
+    fc, wire, clock = link
+    _push(fc, wire, clock, _imu(0), 0.0)
+    # Test
+    near = _push(fc, wire, clock, _imu(1, gz=-0.24), 2.0)
+    good = [_push(fc, wire, clock, _imu(2 + k, gz=0.02 + 0.03 * k), 4.0 + 2.0 * k)
+            for k in range(3)]
+    corrupt = _push(fc, wire, clock, _imu(5, gz=15.3), 10.0)
+    after = _push(fc, wire, clock, _imu(6, gz=0.09), 12.0)
+    # Assert: the good samples are taken at once (near the sample before the corrupted one),
+    # the 15.3 rad/s one dropped, no step counted (the loop would re-seed on MoCap for it)
+    assert near is not None and all(s is not None for s in good)
+    assert corrupt is None and after is not None
+    assert after.gyro_rad_s[2] == pytest.approx(-0.09)
+    assert fc.link_stats().implausible == 1 and fc.imu_motion_missed == 0
+
+
+def test_that_a_run_of_dropped_samples_is_a_step_only_if_they_agree(
+        link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
+    # Fixture: a real step (an impact): three samples 2 rad/s off, near each other
+    fc, wire, clock = link
+    _push(fc, wire, clock, _imu(0), 0.0)
+    # Test: three dropped, then a corrupted one far from them, then the step once more
+    run = [_push(fc, wire, clock, _imu(1 + k, gz=2.0 + 0.1 * k), 2.0 + 2.0 * k)
+           for k in range(3)]
+    corrupt = _push(fc, wire, clock, _imu(4, gz=-9.0), 8.0)
+    again = [_push(fc, wire, clock, _imu(5 + k, gz=2.2), 10.0 + 2.0 * k) for k in range(4)]
+    # Assert: the corrupted one does not end the run as a step (it starts one of its own,
+    # which the step's next sample breaks); the step is taken once three of its samples in a
+    # row are dropped again (a fourth near them), counted as motion the IMU missed
+    assert run == [None, None, None] and corrupt is None
+    assert again[:3] == [None, None, None]
+    assert again[3] is not None and again[3].gyro_rad_s[2] == pytest.approx(-2.2)
+    assert fc.link_stats().implausible == 7 and fc.imu_motion_missed == 1
+
+
 def test_that_an_accelerometer_at_the_frames_limit_is_kept_and_counted_as_an_anomaly(
         link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
     # Fixture: a hard touchdown reads more than the I frame's s16 of mm/s^2 can carry
     fc, wire, clock = link
     _push(fc, wire, clock, _imu(0), 0.0)
     before = fc.imu_anomalies
-    # Test: an impact ramping to the limit over three samples (each step within the 20 m/s^2
-    # a sample may change by), held there twice, then back down to g
+    # Test: an impact ramping to the limit (each step within the 20 m/s^2 a sample may
+    # change by), held there, then down to g and resting
     ramp = [(0.0, 0.0, 25.0), (0.0, 0.0, 40.0), (0.0, 0.0, 60.0), (0.0, 0.0, 60.0),
-            (0.0, 0.0, 45.0), (0.0, 0.0, 28.0), (0.0, 0.0, 9.81)]
+            (0.0, 0.0, 45.0), (0.0, 0.0, 28.0), *[(0.0, 0.0, 9.81)] * 5]
     got = [_push(fc, wire, clock, tk3.encode_frame(mkm.ImuMessage(1 + k, a, (0.0, 0.0, 0.0))
                                                    .encode()), 2.0 + 2.0 * k)
            for k, a in enumerate(ramp)]
-    # Assert: every sample reaches the loop (the clipped ones at the limit), four of them
-    # counted saturated: the loop knows the IMU missed part of that motion. The impact's
-    # first sample and the first one down from the limit jump far beyond the resting IMU's
-    # steps: each is held at the value before for that sample (a spike hold; the next
-    # sample is taken), and counted as an anomaly too
-    assert all(s is not None for s in got)
-    assert [abs(s.accel_m_s2[2]) for s in got if s is not None] == [
-        pytest.approx(v) for v in (9.81, *[mkm.IMU_ACCEL_WIRE_LIMIT_M_S2] * 5, 9.81)]
+    lim = mkm.IMU_ACCEL_WIRE_LIMIT_M_S2
+    # Assert: the impact's first sample jumps far beyond the resting IMU's steps: held at the
+    # value before (a spike hold), so the next one, 23 m/s^2 from that value, is implausible,
+    # and so are the two after it; the fourth at the limit is a real step, taken (the IMU
+    # missed motion). The first sample down is held the same way and the way down to g is a
+    # step again. The sample taken at the limit is counted saturated and each step as motion
+    # missed: the loop knows the IMU missed part of that motion
+    assert [None if s is None else abs(s.accel_m_s2[2]) for s in got] == [
+        pytest.approx(9.81), None, None, None, pytest.approx(lim), pytest.approx(lim),
+        None, None, None, pytest.approx(9.81), pytest.approx(9.81)]
     stats = fc.link_stats()
-    assert stats.accel_saturated == 4 and stats.accel_spikes_held == 2
-    assert fc.imu_anomalies - before == 6 and fc.rx_errors == 0
+    assert stats.accel_saturated == 1 and stats.accel_spikes_held == 2
+    assert stats.implausible == 6 and fc.imu_motion_missed == 3
+    assert fc.imu_anomalies - before == 9
 
 
 def _accel(seq: int, az: float) -> bytes:
@@ -196,6 +263,28 @@ def test_that_a_lone_accelerometer_spike_under_the_step_limit_is_held_for_one_sa
     stats = fc.link_stats()
     assert stats.accel_spikes_held == 1 and stats.implausible == 0
     assert fc.imu_anomalies == 1 and fc.rx_errors == 0
+
+
+def test_that_a_held_spike_is_not_the_reference_of_the_next_implausible_step_check(
+        link: tuple[FlightCtrl, LoopTransport, FakeClock]) -> None:
+    # Fixture: a 0.5 % corrupted link once sent this (seed 19, no other fault): z 5.9 m/s^2
+    # off (under the 20 m/s^2 implausible-step limit: held), then 25.6 m/s^2 off, 19.7 from
+    # the held reading; taken, it kicked the estimate's velocity by 0.15 m/s
+    fc, wire, clock = link
+    rest = [9.81 + (0.05 if k % 2 else 0.0) for k in range(40)]
+    got = _accel_z(fc, wire, clock, rest)
+    # Test
+    spike = _push(fc, wire, clock, _accel(40, 9.81 - 5.9), 80.0)
+    worse = _push(fc, wire, clock, _accel(41, 9.81 - 25.6), 82.0)
+    after = _push(fc, wire, clock, _accel(42, 9.81), 84.0)
+    # Assert: the first held, the second dropped as implausible (25.6 m/s^2 from the
+    # reading before the spike), the next taken
+    assert got[-1] == pytest.approx(9.86)
+    assert spike is not None and -spike.accel_m_s2[2] == pytest.approx(9.86)
+    assert worse is None
+    assert after is not None and -after.accel_m_s2[2] == pytest.approx(9.81)
+    stats = fc.link_stats()
+    assert stats.accel_spikes_held == 1 and stats.implausible == 1
 
 
 def test_that_a_real_accelerometer_step_is_taken_one_sample_late(
@@ -254,7 +343,9 @@ def test_that_the_spike_hold_gives_a_reading_or_the_one_before(az_m_s2: list[flo
         for k, az in enumerate(az_m_s2):
             s = _push(fc, wire, clock, _accel(k, az), 2.0 * k)
             if s is not None:
-                out.append((round(az, 3), -s.accel_m_s2[2]))
+                # the reading as the wire carries it (mm/s^2, rounded half to even: not
+                # round(az, 3), which reads 0.0005 as 0.001 where the wire has 0)
+                out.append((round(az * 1e3) * 1e-3, -s.accel_m_s2[2]))
         for (_, before), (own, now), in itertools.pairwise(out):
             assert now == pytest.approx(own, abs=1e-9) or now == before
         held = [now != pytest.approx(own, abs=1e-9) for own, now in out]
