@@ -517,3 +517,44 @@ def test_that_the_rate_meter_keeps_the_largest_interval_of_its_window(
             rate, age, largest = _window_stats_by_brute_force(seen, seen[0], window_ns, now)
             assert (got.measured_rate_hz, got.age_s, got.max_interval_s) == \
                 (pytest.approx(rate), pytest.approx(age), pytest.approx(largest))
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 60), st.sampled_from(["lost", "ahead", "any"]),
+                          st.integers(0, 255)), max_size=12),
+       st.integers(0, 255))
+def test_that_lost_samples_and_corrupted_sequence_bytes_never_move_the_imu_clock_far(
+        faults: list[tuple[int, str, int]], first_seq: int) -> None:
+    # Property: a 500 Hz stream whose samples are lost or have their sequence byte corrupted
+    # (up to 16 ahead, or into any value), each fault at least two samples after the last:
+    # every sample the time base accepts gets a counter at most 16 ahead of its true one (a
+    # corrupted byte may pass as a gap of lost samples) and never behind, in increasing
+    # order. A resync on the real samples after a byte corrupted ahead once moved it a whole
+    # wrap (256) ahead.
+    from drivers.mikrokopter.device import _ImuTimeBase
+    period_ns = 2_000_000
+    tb = _ImuTimeBase(period_ns)
+    plan: dict[int, tuple[str, int]] = {}
+    k = 3                                    # the stream starts clean
+    for skip, kind, value in faults:
+        k += 2 + skip
+        plan[k] = (kind, value)
+    last = None
+    arrival_ns = 0
+    for k in range(max(plan, default=0) + 40):
+        kind, value = plan.get(k, ("ok", 0))
+        if kind == "lost":
+            continue
+        # "ahead": read up to 16 ahead (a low bit flipped), after a host stall as long (so
+        # that it passes for that many lost samples), the samples after it in a burst
+        ahead = value % 17 if kind == "ahead" else 0
+        seq = (first_seq + k + ahead) & 0xFF if kind != "any" else value
+        arrival_ns = max(arrival_ns, 1_000_000_000 + (k + ahead) * period_ns)
+        got = tb.accept(seq, arrival_ns)
+        if got is None:
+            continue
+        count = got[0] - first_seq
+        assert 0 <= count - k <= 16, (k, seq, count)
+        assert last is None or count > last
+        last = count
+    assert last is not None and last == k   # back in step by the end
