@@ -1005,11 +1005,8 @@ class FlightCtrl:
             return
         last = self._last_imu_raw
         if last is not None:
-            (lgx, lgy, lgz), (lax, lay, laz) = last
             g_step, a_step = cfg.max_gyro_step_rad_s, cfg.max_accel_step_m_s2
-            if ((abs(gx - lgx) > g_step or abs(gy - lgy) > g_step or abs(gz - lgz) > g_step
-                    or abs(ax - lax) > a_step or abs(ay - lay) > a_step
-                    or abs(az - laz) > a_step)
+            if (not _within_steps(g, a, last, g_step, a_step)
                     and not _within_steps(g, a, self._prev_imu_raw, g_step, a_step)):
                 # Implausible against the last two samples taken (the one before the last:
                 # a corrupted sample just under the limits was taken and the link is back).

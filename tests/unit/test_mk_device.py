@@ -20,6 +20,7 @@ from drivers.mikrokopter import (
 )
 from drivers.mikrokopter import framing_tk3 as tk3
 from drivers.mikrokopter import messages as mkm
+from drivers.mikrokopter.device import _ImuTimeBase
 from drivers.transport import LoopTransport
 
 MS = 1_000_000
@@ -531,7 +532,6 @@ def test_that_lost_samples_and_corrupted_sequence_bytes_never_move_the_imu_clock
     # corrupted byte may pass as a gap of lost samples) and never behind, in increasing
     # order. A resync on the real samples after a byte corrupted ahead once moved it a whole
     # wrap (256) ahead.
-    from drivers.mikrokopter.device import _ImuTimeBase
     period_ns = 2_000_000
     tb = _ImuTimeBase(period_ns)
     plan: dict[int, tuple[str, int]] = {}
