@@ -156,7 +156,13 @@ class LandHere:
     keeps into the ground (the estimator does not see a harder impact: see
     ``controller.missions.MAX_TOUCHDOWN_SPEED_M_S``; at 0.3 m/s all the way the vehicle hopped
     off again). From lower than the ease-in and the flare need, it descends at
-    ``touchdown_m_s`` throughout."""
+    ``touchdown_m_s`` throughout.
+
+    ``deep_m_s`` (a blind landing's): once the reference is ``settle_m`` under the ground, past
+    where a vehicle flying on a right estimate has touched down, it speeds up at
+    ``deep_accel_m_s2`` to this speed. An estimate that gets there without a touchdown is below
+    the vehicle, and sinking at the touchdown speed may only hold the vehicle where it is: a dead
+    reckoning whose height sinks as fast (seen: 0.12 m/s) hovers it until its sink runs out."""
 
     t0_s: float
     start_pos_w_m: Vec3
@@ -167,14 +173,49 @@ class LandHere:
     touchdown_m_s: float = 0.12
     flare_m: float = 0.15
     ease_s: float = 1.0  # the descent speed follows a smoothstep over the first second
+    deep_m_s: float | None = None
+    settle_m: float = 0.05
+    deep_accel_m_s2: float = 0.5
 
     def _profile(self, tau: float) -> tuple[float, float, float]:
         """Distance down (m), descent speed (m/s), its rate (m/s^2) at ``tau`` s in."""
-        z0 = self.start_pos_w_m[2]
-        v1 = self.touchdown_m_s
-        to_ground = z0 - self.ground_z_m
+        v1, v2 = self.touchdown_m_s, self.deep_m_s
+        if v2 is None or v2 <= v1:
+            return self._approach(tau)
+        tau_d, dist_d = self._deep_start()
+        if tau <= tau_d:
+            return self._approach(tau)
+        s, a = tau - tau_d, self.deep_accel_m_s2
+        t_acc = (v2 - v1) / a
+        if s < t_acc:
+            return dist_d + v1 * s + 0.5 * a * s * s, v1 + a * s, a
+        return dist_d + v1 * t_acc + 0.5 * a * t_acc * t_acc + v2 * (s - t_acc), v2, 0.0
+
+    def _deep_start(self) -> tuple[float, float]:
+        """When (s in) and how far down (m) the approach is ``settle_m`` under the ground at
+        the touchdown speed (or ends its ease-in, when that is deeper already)."""
+        v0, to_ground = self._cruise()
+        v1, te = self.touchdown_m_s, self.ease_s
+        s_e = 0.5 * v0 * te
+        if v0 > v1:
+            decel = (v0 * v0 - v1 * v1) / (2.0 * self.flare_m)
+            tau_g = te + (to_ground - self.flare_m - s_e) / v0 + (v0 - v1) / decel
+            return tau_g + self.settle_m / v1, to_ground + self.settle_m
+        dist = max(s_e, to_ground + self.settle_m)
+        return te + (dist - s_e) / v1, dist
+
+    def _cruise(self) -> tuple[float, float]:
+        """The cruise speed (the touchdown speed's when too low for the ease-in and the
+        flare) and the distance to the ground."""
+        to_ground = self.start_pos_w_m[2] - self.ground_z_m
         v0 = self.descent_m_s if to_ground >= 0.5 * self.descent_m_s * self.ease_s \
-            + self.flare_m else v1
+            + self.flare_m else self.touchdown_m_s
+        return v0, to_ground
+
+    def _approach(self, tau: float) -> tuple[float, float, float]:
+        """The profile down to the ground and on into it at the touchdown speed."""
+        v1 = self.touchdown_m_s
+        v0, to_ground = self._cruise()
         te = self.ease_s
         if tau < te:
             u = tau / te

@@ -163,6 +163,12 @@ RESEED_WINDOW_S = 1.0   # (2-3 s caught a tracker frozen late in a climb sooner,
 #: IMU alone, its reference sinking this far below the ground so that only the IMU's
 #: touchdown ends it (the dead-reckoned height is not trusted to say where the ground is)
 BLIND_SINK_M = 1.0
+#: ... and from 5 cm under the ground on (where a right estimate has touched down) it sinks at
+#: the descent's cruise speed: an estimate there without a touchdown is under the vehicle, and
+#: at the touchdown speed (0.12 m/s) a dead reckoning sinking as fast hovered the vehicle 0.27 m
+#: up for 8 s, sliding 3 m on its attitude's drift, until the cut dropped it (seen on a 0.5 %
+#: corrupted link). The vehicle then descends at least this less the dead reckoning's drift
+BLIND_DEEP_M_S = 0.3
 #: ... and the estimate goes back this far (the UKF checkpointed every CHECKPOINT_EVERY_S)
 #: and runs on the IMU alone from there: a tracker that froze still streams poses the UKF
 #: fuses until they disagree too much, pulling the estimate's velocity to zero and its
@@ -692,7 +698,7 @@ class FlightLoop:
                                 f"longer fused; the estimate runs on the IMU alone from "
                                 f"{back_s:.1f} s back, the landing ends on the IMU's touchdown")
                 if land_here is not None:  # a landing already under way goes on blind
-                    land_here = replace(land_here, sink_m=BLIND_SINK_M)
+                    land_here = replace(land_here, sink_m=BLIND_SINK_M, deep_m_s=BLIND_DEEP_M_S)
                 on_ground = False
             aloft_since_s = (aloft_since_s or t_s) if phase == "done" and not near_ground \
                 else None
@@ -936,7 +942,8 @@ class FlightLoop:
                 yaw = math.atan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2))
                 land = LandHere(t_s, est.pos_w_m, (math.cos(yaw / 2), 0.0, 0.0,
                                                    math.sin(yaw / 2)), self.opts.ground_z_m,
-                                **({"sink_m": BLIND_SINK_M} if self.mocap_distrusted else {}))
+                                **({"sink_m": BLIND_SINK_M, "deep_m_s": BLIND_DEEP_M_S}
+                                   if self.mocap_distrusted else {}))
         self._tell_faults()
         return land
 

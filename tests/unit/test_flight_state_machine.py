@@ -396,3 +396,40 @@ def test_that_a_landing_here_flares_to_its_touchdown_speed_above_the_ground(z0_m
         assert (z[k + 1] - z[k - 1]) / (2 * dt) == pytest.approx(vz[k], abs=2e-3)
         if abs(az[k + 1] - az[k - 1]) < 1e-9:  # away from the flare's step in acceleration
             assert (vz[k + 1] - vz[k - 1]) / (2 * dt) == pytest.approx(az[k], abs=1e-2)
+
+
+@pytest.mark.parametrize("z0_m", [2.5, 1.0, 0.4, 0.25, 0.12, 0.1])
+def test_that_a_blind_landing_sinks_at_its_deep_speed_once_under_the_ground(z0_m: float) -> None:
+    from controller.pipeline import LandHere
+
+    # Fixture: the blind landing's reference (ground at 0.1 m, 1 m of sink, 0.3 m/s deep)
+    land = LandHere(10.0, (0.3, -0.2, z0_m), (1.0, 0.0, 0.0, 0.0), 0.1, sink_m=1.0,
+                    deep_m_s=0.3)
+    plain = replace(land, deep_m_s=None)
+    dt = 0.001
+    # Test
+    refs = [land.reference(10.0 + k * dt, 0.0) for k in range(30_000)]
+    z = [r.pos_w_m[2] for r in refs]
+    vz = [r.vel_w_m_s[2] for r in refs]
+    az = [r.acc_w_m_s2[2] for r in refs]
+    # Assert: down to its whole sink, never up, no faster than the deep speed
+    assert all(b <= a + 1e-12 for a, b in itertools.pairwise(z))
+    assert z[-1] == pytest.approx(0.1 - 1.0)
+    assert min(vz) >= -0.3 - 1e-9
+    # it is the plain landing's until 5 cm under the ground (or the end of the ease-in from
+    # lower), arriving there at the touchdown speed
+    deep = next(k for k, r in enumerate(refs) if r != plain.reference(10.0 + k * dt, 0.0))
+    assert z[deep] <= 0.05 + 1e-9
+    assert z[deep] >= 0.05 - 1e-3 or deep * dt == pytest.approx(1.0, abs=2e-3)
+    assert -0.12 - 1e-9 <= vz[deep - 1] < 0.0
+    # deeper, it speeds up to 0.3 m/s within (0.3 - 0.12) / 0.5 s and holds it to the end
+    fast = next(k for k, v in enumerate(vz) if k > deep and v <= -0.3 + 1e-9)
+    assert (fast - deep) * dt <= (0.3 - 0.12) / 0.5 + 2e-3
+    end = next(k for k, h in enumerate(z) if h <= 0.1 - 1.0 + 1e-12)
+    assert all(v == pytest.approx(-0.3) for v in vz[fast:end - 1])
+    # the velocity is the position's derivative and the acceleration the velocity's (away from
+    # the acceleration's steps)
+    for k in range(1, end - 1):
+        assert (z[k + 1] - z[k - 1]) / (2 * dt) == pytest.approx(vz[k], abs=2e-3)
+        if abs(az[k + 1] - az[k - 1]) < 1e-9:
+            assert (vz[k + 1] - vz[k - 1]) / (2 * dt) == pytest.approx(az[k], abs=1e-2)
