@@ -47,6 +47,7 @@ from drivers.mocap.pose import MocapError
 from drivers.mocap.qtm_client import QtmClient
 from drivers.mocap.uri import open_pose_source
 from drivers.realtime import freeze_start_up_heap, thaw_start_up_heap
+from drivers.shared_flag import SharedFlag
 from estimator.ukf import Ukf
 from groundstation.flight import SafetyLimits
 from groundstation.gcs import GcsOptions, gcs_options, start_gcs
@@ -428,8 +429,11 @@ class FlightSession:
 
         with stop_signals_blocked(flight=True):
             resource_tracker.ensure_running()
-        stop = ctx.Event()
-        tel_imported, tel_go, tel_opened = ctx.Event(), ctx.Event(), ctx.Event()
+        # flags, not Events: an Event's set() waits for ever on a process that died asleep in
+        # its wait (drivers.shared_flag), a session killed in start-up or a telemetry process
+        # that crashed before `go`
+        stop = SharedFlag(ctx)
+        tel_imported, tel_go, tel_opened = SharedFlag(ctx), SharedFlag(ctx), SharedFlag(ctx)
         tel_failure: Any = ctx.Queue(maxsize=4)
         events: Any = ctx.Queue(maxsize=10_000)
         status: Any = ctx.Array("d", STATUS_SIZE, lock=False)

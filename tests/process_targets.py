@@ -126,3 +126,38 @@ def fly_long_hover_in_own_group(tmp: str) -> None:
                   Mission(load_mission(tmp_path / "long-hover.yaml")),
                   record_path=tmp_path / "killed.fhr", session_dir=dev,
                   echo_events=False).run()
+
+
+def wait_on_flag_for_ever(flag: Any, ready: Any) -> None:
+    """Say so on ``ready``, then wait on ``flag`` with no time limit (to be killed there)."""
+    ready.set()
+    flag.wait()
+
+
+def set_flag_after_its_waiter_died(kind: str, conn: Any) -> None:
+    """In a process of its own (it may hang): a waiter asleep in ``flag.wait()`` is killed,
+    then the flag is set; says on ``conn`` when the waiter is dead and when ``set()`` returned.
+    ``kind``: "flag" (drivers.shared_flag.SharedFlag) or "event" (multiprocessing.Event)."""
+    import multiprocessing as mp
+    import os
+    import signal
+
+    from drivers.shared_flag import SharedFlag
+
+    ctx = mp.get_context("spawn")
+    flag: Any = SharedFlag(ctx) if kind == "flag" else ctx.Event()
+    ready = SharedFlag(ctx)
+    waiter = ctx.Process(target=wait_on_flag_for_ever, args=(flag, ready), daemon=True)
+    waiter.start()
+    assert ready.wait(60.0)
+    time.sleep(0.3)  # asleep in its wait by now
+    os.kill(waiter.pid, signal.SIGKILL)  # type: ignore[arg-type]
+    waiter.join()
+    conn.send("dead")
+    flag.set()
+    conn.send("set")
+
+
+def set_flag_later(flag: Any, delay_s: float) -> None:
+    time.sleep(delay_s)
+    flag.set()

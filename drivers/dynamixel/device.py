@@ -89,6 +89,7 @@ from drivers.dynamixel.control_table import (
     to_unsigned16,
 )
 from drivers.errors import DriverError, TransportUriError
+from drivers.shared_flag import SharedFlag
 from drivers.transport import describe_open_error
 
 log = logging.getLogger(__name__)
@@ -1049,7 +1050,9 @@ class TiltServo:
         self._conn = ours
         self._stopped = False
         if self.isolation == "process":
-            self._stop = self._ctx.Event()
+            # not an Event: its set() would wait for ever on a servo process that died asleep
+            # in its wait (drivers.shared_flag)
+            self._stop = SharedFlag(self._ctx)
             self._runner = self._ctx.Process(
                 target=_run_worker, name="tilt-servo", daemon=True,
                 args=(self.config, self._mailbox, theirs, self._stop, True))

@@ -282,3 +282,27 @@ def test_that_an_inline_cycle_waits_for_its_replies_no_longer_than_asked(tmp_pat
         assert link.sdk.port_handler.LATENCY_TIMER == 250.0
     assert 50.0 <= capped_ms < 51.0
     assert 502.0 <= uncapped_ms < 503.0
+
+
+def test_that_a_crashed_servo_process_is_stale_and_stopping_it_returns(
+        rig: tuple[EmulatedMX28, TiltServo]) -> None:
+    # Fixture: the servo process killed (a crash, the OOM killer), most likely asleep between
+    # two cycles in its wait for the stop flag: with a multiprocessing.Event, stop()'s set()
+    # then waited for ever for it to wake (drivers.shared_flag)
+    import os
+    import signal
+
+    _, servo = rig
+    runner = servo._runner
+    assert runner is not None and runner.pid is not None
+    os.kill(runner.pid, signal.SIGKILL)
+    runner.join(WAIT_S)
+    # Test / Assert: the measurement goes stale, the last tilt kept; stopping returns at once
+    state = servo.wait_for(lambda s: not s.ok, WAIT_S)
+    assert state.health is ServoHealth.STALE
+    assert_kept_last_tilt(state)
+    stopper = threading.Thread(target=servo.stop, daemon=True)
+    t0 = time.monotonic()
+    stopper.start()
+    stopper.join(WAIT_S)
+    assert not stopper.is_alive() and time.monotonic() - t0 < 1.0
