@@ -343,8 +343,9 @@ class FlightLoop:
         self._counters = {"telemetry_dropped": 0, "imu_missing": 0, "poses_fused": 0,
                           "servo_sync_failures": 0, "imu_gap_max_us": 0,
                           "imu_gap_max_at_ms": 0, "reseeds_imu_missed_motion": 0,
-                          "reseeds_imu_link": 0}
+                          "reseeds_imu_link": 0, "lockstep_stalls": 0}
         self._rx_errors = 0
+        self._stalled = False  # lockstep: the last sample counted lost on the wall clock
         self._faults_told = 0  # faults of the state machine already sent as events
         #: received / expected IMU samples over the last rate window (lockstep: from sequence
         #: numbers, so a degraded link is caught on the simulated clock too)
@@ -455,6 +456,19 @@ class FlightLoop:
             start_ns = time.perf_counter_ns()
             if imu is None:
                 missing += 1
+                if self._stalled and t0_s is not None:
+                    # nothing on the wire for LOCKSTEP_LOST_S of wall time: a host that stalled
+                    # that long (or a silent board) decides which `w` steps the vehicle next,
+                    # not the seed; said once, counted each time (before the stream starts the
+                    # board waits for its first `w`: no step is lost there)
+                    self._counters["lockstep_stalls"] += 1
+                    if self._counters["lockstep_stalls"] == 1:
+                        self.event_sink(
+                            f"{t_s:.3f} s lockstep: no IMU sample for {LOCKSTEP_LOST_S:g} s of "
+                            "wall time (a stalled host or a silent board): counted as lost, so "
+                            "from here the flight depends on the host's timing, not only on "
+                            "its seed")
+                self._stalled = False
                 if opts.lockstep and not lost_link:
                     # A lost or corrupted sample: the emulated board steps on every `w`, so
                     # answer as a real host would at its control period (hold the output).
@@ -892,6 +906,7 @@ class FlightLoop:
             if errors != self._rx_errors:
                 self._rx_errors = errors
                 return self.imu.wait_next(0.0)
+        self._stalled = True
         return None
 
     def _take_pose(self, t0_s: float, t_s: float, est: VehicleState) -> None:

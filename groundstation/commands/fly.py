@@ -265,6 +265,8 @@ def flight_summary(outcome: Any, params: Any, session: str) -> dict[str, Any]:
         "imu_gap_max_ms": r.counters.get("imu_gap_max_us", 0) / 1000.0,
         "imu_gap_max_at_s": r.counters.get("imu_gap_max_at_ms", 0) / 1000.0,
         "imu_waits_empty": r.counters.get("imu_missing", 0),
+        # lockstep: samples counted lost after LOCKSTEP_LOST_S of wall time (not reproducible)
+        "lockstep_stalls": r.counters.get("lockstep_stalls", 0),
         "record": str(outcome.record_path),
         "preflight": [{"check": n, "pass": ok, "value": v} for n, ok, v in outcome.preflight],
     }

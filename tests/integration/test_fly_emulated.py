@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 import re
 import subprocess
 import sys
@@ -92,6 +93,41 @@ def test_that_two_runs_with_the_same_seed_give_identical_records(tmp_path: Path)
     ra, rb = read_record(a.record_path).rows, read_record(b.record_path).rows
     assert len(ra) == len(rb) > 4000
     assert ra.tobytes() == rb.tobytes()
+    assert a.result.counters["lockstep_stalls"] == b.result.counters["lockstep_stalls"] == 0
+
+
+def test_that_a_lockstep_flight_says_when_a_stalled_host_made_it_depend_on_timing(
+        tmp_path: Path) -> None:
+    # Fixture: the emulated vehicle's process stopped (SIGSTOP) for 1.3 s of wall time in the
+    # mission, as a host stalled that long would: after 1 s the loop counts the sample lost
+    # and commands again, so which `w` steps the vehicle next is the host's timing
+    import signal
+    import threading
+
+    from flight_support import short_session
+
+    cfg, params, mission = short_session(tmp_path, seed=5)
+    events: list[str] = []
+    session: FlightSession | None = None
+
+    def on_event(line: str) -> None:
+        events.append(line)
+        if "-> MISSION" in line and session is not None and session.emulator is not None:
+            pid = session.emulator.proc.pid
+            os.kill(pid, signal.SIGSTOP)
+            threading.Timer(1.3, os.kill, (pid, signal.SIGCONT)).start()
+
+    session = FlightSession(cfg, params, mission, record_path=tmp_path / "stalled.fhr",
+                            echo_events=False, on_event=on_event)
+    # Test
+    out = session.run()
+    # Assert: said once with the time, counted, and the flight goes on to its end
+    said = [e for e in events if "lockstep: no IMU sample for 1 s of wall time" in e]
+    assert len(said) == 1, events
+    assert float(said[0].split(" s ")[0]) == pytest.approx(5.5, abs=0.1)  # the mission's start
+    assert out.result.counters["lockstep_stalls"] >= 1
+    assert out.result.end_reason == "mission complete"
+    assert out.truth is not None and out.truth["landed"] and not out.truth["crash"]
 
 
 def test_that_a_short_mocap_dropout_does_not_end_the_flight(tmp_path: Path) -> None:
