@@ -818,3 +818,52 @@ def fuse_in_past(t_c: float, pos: FloatArray, q_m: FloatArray, t_filter: float,
     P[:, :] = Ps
     q_ref[:] = qs
     return 0, nis
+
+
+#: the columns of one pose of :class:`estimator.consistency.ConsistencyMonitor`: t, the
+#: position, c (4) and u (3)
+POSE_WIDTH = 11
+
+
+@_jit
+def window_stats(poses: FloatArray, lo: int, hi: int, out: FloatArray) -> None:
+    """:func:`estimator.consistency._window` over the rows ``lo:hi`` of ``poses`` (one pose a
+    row, :data:`POSE_WIDTH` columns), into ``out`` (11: the mean c, the mean time, the mean u,
+    the velocity). The same operations in the same order as that function, no fast-math: the
+    same bits (tested)."""
+    n = hi - lo
+    c0w, c0x, c0y, c0z = poses[lo, 4], poses[lo, 5], poses[lo, 6], poses[lo, 7]
+    sw = sx = sy = sz = st = sux = suy = suz = spx = spy = spz = 0.0
+    for i in range(lo, hi):
+        cw, cx, cy, cz = poses[i, 4], poses[i, 5], poses[i, 6], poses[i, 7]
+        if cw * c0w + cx * c0x + cy * c0y + cz * c0z >= 0.0:
+            sw += cw
+            sx += cx
+            sy += cy
+            sz += cz
+        else:
+            sw -= cw
+            sx -= cx
+            sy -= cy
+            sz -= cz
+        st += poses[i, 0]
+        sux += poses[i, 8]
+        suy += poses[i, 9]
+        suz += poses[i, 10]
+        spx += poses[i, 1]
+        spy += poses[i, 2]
+        spz += poses[i, 3]
+    norm = math.sqrt(sw * sw + sx * sx + sy * sy + sz * sz)
+    tm = st / n
+    mx, my, mz = spx / n, spy / n, spz / n
+    stt = vx = vy = vz = 0.0
+    for i in range(lo, hi):
+        d = poses[i, 0] - tm
+        stt += d * d
+        vx += d * (poses[i, 1] - mx)
+        vy += d * (poses[i, 2] - my)
+        vz += d * (poses[i, 3] - mz)
+    out[0], out[1], out[2], out[3] = sw / norm, sx / norm, sy / norm, sz / norm
+    out[4] = tm
+    out[5], out[6], out[7] = sux / n, suy / n, suz / n
+    out[8], out[9], out[10] = vx / stt, vy / stt, vz / stt

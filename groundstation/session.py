@@ -48,6 +48,7 @@ from drivers.mocap.qtm_client import QtmClient
 from drivers.mocap.uri import open_pose_source
 from drivers.realtime import freeze_start_up_heap, thaw_start_up_heap
 from drivers.shared_flag import SharedFlag
+from estimator import consistency
 from estimator.ukf import Ukf
 from groundstation.flight import SafetyLimits
 from groundstation.gcs import GcsOptions, gcs_options, start_gcs
@@ -563,6 +564,7 @@ class FlightSession:
                 _open_device("mocap", mocap_uri, mocap.start)
             self._check_interrupted("connecting to the MoCap server")
             ukf = Ukf(_estimator_config(cfg, self.params))  # before the IMU streams
+            consistency.warm_up()  # its kernel too (the loop's MoCap/IMU monitor)
             self._await_telemetry(tel, tel_imported)  # before the IMU streams too
             # The Flight-Ctrl last: once its IMU streams, an emulated board waits for `w` only
             # for its lockstep grace (then free-runs, and a run is no longer repeatable), so

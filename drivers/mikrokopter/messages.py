@@ -155,14 +155,27 @@ def spin_hz_to_half_period(speed_hz: float) -> int:
 
 
 _W_STRUCTS = {n: struct.Struct(f">{n}h") for n in range(1, 13)}
+#: up to this rate a ``w`` half period is at least 1 us (``int(500000 / rate)`` >= 1)
+_FAST_MAX_SPIN_HZ = _HALF_PERIOD_NUM
 
 
 def encode_spin_rates_hz(speeds_hz: Sequence[float], directions: Sequence[int]) -> bytes:
     """The ``w`` message (unframed) for spin rates in Hz, each signed by its motor's direction
     (+1 / -1; the magnitude of the rate is used): ``SpinRates.from_hz(d * |s|).encode()``
-    without the intermediate objects (the 500 Hz-1 kHz send path). Non-finite rates raise."""
-    periods = [spin_hz_to_half_period(d * abs(s)) for d, s in zip(directions, speeds_hz,
-                                                                   strict=True)]
+    without the intermediate objects (the 500 Hz-1 kHz send path). Non-finite rates raise.
+
+    A rate within ``[MIN_SPIN_HZ, 500 kHz]`` (every one in flight) is converted inline:
+    there ``int(500000 / rate)`` lies in 1..32767, so :func:`spin_hz_to_half_period`'s
+    clamps cannot change it; any other (idle, stop, non-finite) goes through that function."""
+    if len(speeds_hz) != len(directions):
+        raise ValueError(f"{len(speeds_hz)} spin rates for {len(directions)} directions")
+    periods = []
+    for d, s in zip(directions, speeds_hz, strict=True):
+        v = d * abs(s)
+        if MIN_SPIN_HZ <= abs(v) <= _FAST_MAX_SPIN_HZ:   # False for NaN
+            periods.append(int(_HALF_PERIOD_NUM / v))
+        else:
+            periods.append(spin_hz_to_half_period(v))
     packer = _W_STRUCTS.get(len(periods))
     if packer is None:
         packer = struct.Struct(f">{len(periods)}h")

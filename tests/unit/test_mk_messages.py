@@ -194,6 +194,18 @@ def test_that_the_fast_w_encoder_gives_the_spin_rates_message_bytes(
     assert m.encode_spin_rates_hz(speeds, dirs) == expected.encode()
 
 
+def test_that_the_fast_w_encoder_agrees_at_the_edges_of_its_inline_range() -> None:
+    # the inline conversion covers [MIN_SPIN_HZ, 500 kHz]; each edge, just inside and just
+    # outside, both directions, and zero with either sign
+    edges = [m.MIN_SPIN_HZ, 500_000.0, 0.0, -0.0, 1e6, 16.0, 1.0]
+    speeds = [x for e in edges for x in (e, math.nextafter(e, math.inf),
+                                          math.nextafter(e, -math.inf))]
+    for d in (1, -1):
+        for s in speeds:
+            expected = m.SpinRates.from_hz([d * abs(s)]).encode()
+            assert m.encode_spin_rates_hz([s], [d]) == expected, (s, d)
+
+
 def test_that_the_fast_w_encoder_refuses_a_non_finite_rate_and_a_length_mismatch() -> None:
     with pytest.raises(ValueError, match="not finite"):
         m.encode_spin_rates_hz([80.0, math.nan], [1, -1])

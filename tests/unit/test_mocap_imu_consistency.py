@@ -194,3 +194,47 @@ def test_hostile_numbers_never_raise(events: list[tuple[bool, float, tuple[float
             m.add_imu(t, v3, v3)
         else:
             m.add_pose(t, v3, v4, v3, v3, accel_clean_since_s=t)
+
+
+_finite = st.floats(min_value=-1e3, max_value=1e3, allow_nan=False)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(*[_finite] * 11), min_size=5, max_size=40), st.data())
+def test_that_the_compiled_window_gives_the_bits_of_the_python_one(
+        rows: list[tuple[float, ...]], data: st.DataObject) -> None:
+    from estimator import compiled
+    from estimator.consistency import _window
+
+    if not compiled.AVAILABLE:
+        pytest.skip("numba is not installed: the monitor runs the Python window")
+    # distinct times (a slope needs a spread), any other values
+    rows = [(float(k) * 0.01 + r[0] * 1e-6, *r[1:]) for k, r in enumerate(rows)]
+    lo = data.draw(st.integers(0, len(rows) - 2))
+    hi = data.draw(st.integers(lo + 2, len(rows)))
+    if any(math.sqrt(sum(c * c for c in r[4:8])) == 0.0 for r in rows[lo:hi]):
+        return
+    arr = np.array(rows)
+    out = np.empty(compiled.POSE_WIDTH)
+    with np.errstate(all="ignore"):
+        compiled.window_stats(arr, lo, hi, out)
+    try:
+        (cw, cx, cy, cz), tm, u, v = _window(rows, lo, hi)
+    except ZeroDivisionError:       # the quaternions summed to zero: the kernel gives NaN
+        assert not np.isfinite(out[:4]).all()
+        return
+    expected = np.array([cw, cx, cy, cz, tm, *u, *v])
+    assert out.tobytes() == expected.tobytes()
+
+
+def test_that_the_monitor_compares_the_same_with_and_without_the_compiled_window(
+        lively_run: Scenario, monkeypatch: pytest.MonkeyPatch) -> None:
+    from estimator import compiled
+
+    if not compiled.AVAILABLE:
+        pytest.skip("numba is not installed: the monitor runs the Python window")
+    fast = feed(lively_run)
+    monkeypatch.setattr(compiled, "AVAILABLE", False)
+    plain = feed(lively_run)
+    assert len(fast) == len(plain) > 1000
+    assert fast == plain      # every field of every comparison, exactly
