@@ -346,6 +346,7 @@ class FlightLoop:
                           "reseeds_imu_link": 0, "lockstep_stalls": 0}
         self._rx_errors = 0
         self._stalled = False  # lockstep: the last sample counted lost on the wall clock
+        self._pose_num_ns = 0  # this tick's pose update (ns), part of its numerics
         self._faults_told = 0  # faults of the state machine already sent as events
         #: received / expected IMU samples over the last rate window (lockstep: from sequence
         #: numbers, so a degraded link is caught on the simulated clock too)
@@ -556,16 +557,20 @@ class FlightLoop:
             # 3. (predict part)
             imu_input = (t_s, imu.gyro_rad_s, imu.accel_m_s2,
                          force_cmd_b if tick is not None else None)
+            num_start_ns = time.perf_counter_ns()  # the numerics, timed apart (LoopTimer)
             self.ukf.predict(*imu_input)
+            num_ns = time.perf_counter_ns() - num_start_ns
             self._imu_inputs.append(imu_input)
             self._consistency.add_imu(t_s, imu.gyro_rad_s, imu.accel_m_s2)
             # plain floats and one check, not the full estimate (its covariance copy and
             # health report cost as much as the predict)
+            num_start_ns = time.perf_counter_ns()
             force_ext = None
             if self.ukf.initialized:
                 est_state = VehicleState(*self.ukf.output_state())
                 force_ext = self.ukf.force_ext_w_n()
             estimator_ok = self.ukf.usable()
+            num_ns += time.perf_counter_ns() - num_start_ns
 
             # the periodic chores on different ticks (a tick carrying both would set the
             # compute p99 at 1 kHz): operator exchange, link check
@@ -745,6 +750,7 @@ class FlightLoop:
             # 5. control
             spins = ZERO6
             tick = None
+            num_start_ns = time.perf_counter_ns()
             if directive.reference is ReferenceSource.MISSION:
                 tick = self.computer.step(tm, est_state, alpha, hold_tilt=directive.hold_tilt,
                                           force_ext_w_n=force_ext,
@@ -763,6 +769,7 @@ class FlightLoop:
                                   acc_w_m_s2=(0.0, 0.0, az))
                 tick = self.computer.step(tm, est_state, alpha, ref=ref, hold_tilt=True,
                                           force_ext_w_n=force_ext)
+            num_ns += time.perf_counter_ns() - num_start_ns
             if servo_cycle:  # before set_tilt: the cycle wrote the previous goal
                 try:
                     servo_state = self.tilt.finish_cycle(servo_wait_s)
@@ -795,7 +802,9 @@ class FlightLoop:
                     self._compare_with_imu(t_s, *compare, est_state)
             if opts.lockstep:
                 self.pose.handle_received()
+            self._pose_num_ns = 0
             self._take_pose(t0_s, t_s, est_state)
+            num_ns += self._pose_num_ns
             eta_f = 1.0
             if tick is not None:  # the commanded body force feeds the UKF's force observer
                 force_cmd_b, eta_f = self.computer.thrust_force_b(alpha, tick.cmd.thrusts_n)
@@ -806,7 +815,8 @@ class FlightLoop:
 
             # 6. telemetry
             self._push_row(t_s, tick, alpha, est_state, spins, eta_f, directive.state)
-            self.timer.record(start_ns, time.perf_counter_ns(), sent_ns - imu.arrival_t_ns)
+            self.timer.record(start_ns, time.perf_counter_ns(), sent_ns - imu.arrival_t_ns,
+                              num_ns)
             n += 1
             if n % 50 == 0:
                 flight_s = t_s - takeoff_t_s if takeoff_t_s is not None else math.nan
@@ -928,8 +938,10 @@ class FlightLoop:
                 missed = self.imu.imu_motion_missed
                 self.ukf.note_imu_anomaly(t_s, motion_missed=missed != self._imu_missed)
                 self._imu_anomalies, self._imu_missed = anomalies, missed
+            num_start_ns = time.perf_counter_ns()
             verdict = self.ukf.update_pose(cap_s, pose.pos_w_m, pose.q_wb) \
                 if math.isfinite(self.ukf.t_s) else None
+            self._pose_num_ns = time.perf_counter_ns() - num_start_ns
             if verdict is PoseVerdict.RESET:
                 self._judge_reset(t_s, cap_s, est)
             elif verdict is PoseVerdict.ACCEPTED or verdict is PoseVerdict.REJECTED:

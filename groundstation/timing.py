@@ -31,6 +31,12 @@ class TimingSummary:
     compute_max_ms: float
     latency_p50_ms: float = 0.0  # IMU bytes received -> `w` frame written
     latency_p99_ms: float = 0.0
+    compute_mean_ms: float = 0.0
+    #: the tick's numerics alone, timed inside the tick: UKF predict (and a pose's update),
+    #: the estimate as the loop reads it, the controller (the rest of the compute is I/O,
+    #: parsing, the monitor, the state machine and the record)
+    numerics_p50_ms: float = 0.0
+    numerics_mean_ms: float = 0.0
 
     @property
     def miss_fraction(self) -> float:
@@ -45,13 +51,16 @@ class LoopTimer:
         self._start = np.zeros(capacity, dtype=np.int64)
         self._compute = np.zeros(capacity, dtype=np.int64)
         self._latency = np.zeros(capacity, dtype=np.int64)
+        self._numerics = np.zeros(capacity, dtype=np.int64)
         self._n = 0
         self._capacity = capacity
         self.deadline_misses = 0
 
-    def record(self, start_ns: int, end_ns: int, latency_ns: int = 0) -> None:
+    def record(self, start_ns: int, end_ns: int, latency_ns: int = 0,
+               numerics_ns: int = 0) -> None:
         """One tick: when the loop took its input (start), when its output was written (end),
-        and how long after the input's arrival the output went out (``latency_ns``)."""
+        how long after the input's arrival the output went out (``latency_ns``) and how much of
+        it the numerics took (``numerics_ns``)."""
         compute = end_ns - start_ns
         if compute > self.nominal_ns:
             self.deadline_misses += 1
@@ -59,6 +68,7 @@ class LoopTimer:
             self._start[self._n] = start_ns
             self._compute[self._n] = compute
             self._latency[self._n] = latency_ns
+            self._numerics[self._n] = numerics_ns
         self._n += 1
 
     @property
@@ -78,6 +88,7 @@ class LoopTimer:
         n = min(self._n, self._capacity)
         if n < 2:
             return TimingSummary(self._n, self.deadline_misses, *([0.0] * 9))
+        numerics = self._numerics[:n] * 1e-6
         period = np.diff(self._start[:n]) * 1e-6
         jitter = np.abs(period - self.nominal_ns * 1e-6)
         compute = self._compute[:n] * 1e-6
@@ -93,6 +104,9 @@ class LoopTimer:
             compute_max_ms=float(np.max(compute)),
             latency_p50_ms=float(np.percentile(self._latency[:n], 50)) * 1e-6,
             latency_p99_ms=float(np.percentile(self._latency[:n], 99)) * 1e-6,
+            compute_mean_ms=float(np.mean(compute)),
+            numerics_p50_ms=float(np.percentile(numerics, 50)),
+            numerics_mean_ms=float(np.mean(numerics)),
         )
 
 

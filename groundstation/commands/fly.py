@@ -254,7 +254,9 @@ def flight_summary(outcome: Any, params: Any, session: str) -> dict[str, Any]:
         "deadline_misses": t.deadline_misses, "compute_p50_ms": t.compute_p50_ms,
         "compute_p99_ms": t.compute_p99_ms, "period_p50_ms": t.period_p50_ms,
         "jitter_p99_ms": t.jitter_p99_ms, "latency_p50_ms": t.latency_p50_ms,
-        "latency_p99_ms": t.latency_p99_ms, "faults": list(r.faults),
+        "latency_p99_ms": t.latency_p99_ms, "compute_mean_ms": t.compute_mean_ms,
+        "numerics_p50_ms": t.numerics_p50_ms, "numerics_mean_ms": t.numerics_mean_ms,
+        "faults": list(r.faults),
         "transitions": [f"{tr.t_s:.3f} s {tr.from_state.name} -> {tr.to_state.name}: "
                         f"{tr.reason}" for tr in r.transitions],
         "poses_rejected": r.estimator_poses_rejected,
