@@ -30,8 +30,8 @@ Feed it every IMU sample (:meth:`ConsistencyMonitor.add_imu`, an append) and eve
 (:meth:`ConsistencyMonitor.add_pose`, where the integration runs, up to the capture time).
 Python floats but for the windows' statistics, a compiled loop over the poses kept in an array
 (:func:`estimator.compiled.window_stats`, the same bits as the pure-Python :func:`_window`; that
-one without numba): about 12 us per pose at 500 Hz IMU and 100 Hz MoCap (five samples
-integrated, one 20-pose window; 25 us with the window in Python), nothing per IMU sample but
+one without numba): about 15 us per pose at 500 Hz IMU and 100 Hz MoCap (five samples
+integrated, one 20-pose window; 29 us with the window in Python), nothing per IMU sample but
 the append.
 """
 

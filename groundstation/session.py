@@ -661,7 +661,7 @@ class FlightSession:
             with contextlib.suppress(queue.Full, ValueError):  # the telemetry drains up to it
                 events.put_nowait(END_OF_EVENTS)
             stop.set()
-            if tel is not None:
+            if tel is not None and tel.pid is not None:  # started (its start may have raised)
                 tel.join(timeout=30.0)
                 if tel.is_alive():
                     tel.kill()

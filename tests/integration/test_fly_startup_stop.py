@@ -100,3 +100,25 @@ def test_that_ctrl_z_during_start_up_is_no_stop(tmp_path: Path) -> None:
     assert "stopped while" not in text
     events = Path(str(record) + ".events.txt").read_text()
     assert "operator Ctrl-Z: refused" in events, events
+
+
+def test_that_a_telemetry_process_that_cannot_start_is_the_error_reported(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # Fixture: the telemetry process's start fails as it does on a host out of file
+    # descriptors (the session's clean-up must not mask it with a join of a process that
+    # never started)
+    import multiprocessing.context
+
+    from flight_support import short_session
+
+    from groundstation.session import FlightSession
+
+    def no_start(self: object) -> None:
+        raise OSError(24, "Too many open files")
+
+    monkeypatch.setattr(multiprocessing.context.SpawnProcess, "start", no_start)
+    cfg, params, mission = short_session(tmp_path)
+    # Test / Assert
+    with pytest.raises(OSError, match="Too many open files"):
+        FlightSession(cfg, params, mission, record_path=tmp_path / "f.fhr",
+                      echo_events=False).run()
