@@ -827,10 +827,12 @@ POSE_WIDTH = 11
 
 @_jit
 def window_stats(poses: FloatArray, lo: int, hi: int, out: FloatArray) -> None:
-    """:func:`estimator.consistency._window` over the rows ``lo:hi`` of ``poses`` (one pose a
-    row, :data:`POSE_WIDTH` columns), into ``out`` (11: the mean c, the mean time, the mean u,
-    the velocity). The same operations in the same order as that function, no fast-math: the
-    same bits (tested)."""
+    """The statistics of the MoCap/IMU monitor's window over the rows ``lo:hi`` of ``poses``
+    (:class:`estimator.consistency.ConsistencyMonitor`: one pose a row, :data:`POSE_WIDTH`
+    columns t, p, c, u) into ``out`` (11): the mean of c (normalised, signs aligned to the
+    first row's), the mean time, the mean of u, and MoCap's velocity (the least-squares slope
+    of p: the velocity at the mean time). No fast-math: compiled and interpreted, the same bits
+    (tested)."""
     n = hi - lo
     c0w, c0x, c0y, c0z = poses[lo, 4], poses[lo, 5], poses[lo, 6], poses[lo, 7]
     sw = sx = sy = sz = st = sux = suy = suz = spx = spy = spz = 0.0

@@ -29,10 +29,9 @@ the paper's three experiments among them stayed under 0.20 deg and 0.022 m/s (0.
 Feed it every IMU sample (:meth:`ConsistencyMonitor.add_imu`, an append) and every MoCap pose
 (:meth:`ConsistencyMonitor.add_pose`, where the integration runs, up to the capture time).
 Python floats but for the windows' statistics, a compiled loop over the poses kept in an array
-(:func:`estimator.compiled.window_stats`, the same bits as the pure-Python :func:`_window`; that
-one without numba): about 15 us per pose at 500 Hz IMU and 100 Hz MoCap (five samples
-integrated, one 20-pose window; 29 us with the window in Python), nothing per IMU sample but
-the append.
+(:func:`estimator.compiled.window_stats`; interpreted without numba, with the same bits): about
+15 us per pose at 500 Hz IMU and 100 Hz MoCap (five samples integrated, one 20-pose window; 29
+us with the window in Python), nothing per IMU sample but the append.
 """
 
 from __future__ import annotations
@@ -78,12 +77,9 @@ class Comparison(NamedTuple):
     """|dv_mocap - dv_imu|; NaN when the accelerometer was not clean over the horizon."""
 
 
-#: one pose, flat (a row of the monitor's array; unpacked in one step in the window loops): t,
-#: the position, c = q_mocap (x) q_gyro^-1 and u, the integral of R_gyro (accel - b_a) dt, at
-#: the capture time
-_PoseEntry = tuple[float, float, float, float, float, float, float, float, float, float, float]
-
-
+#: a window's statistics: the mean c, the mean time, the mean u, MoCap's velocity. A pose is a
+#: row of the monitor's array: t, the position, c = q_mocap (x) q_gyro^-1 and u, the integral
+#: of R_gyro (accel - b_a) dt, at the capture time
 _WindowStats = tuple[tuple[float, float, float, float], float, tuple[float, float, float],
                      tuple[float, float, float]]
 
@@ -253,9 +249,10 @@ class ConsistencyMonitor:
         # a window cut short (the start of the data, a dropout) has a noisy slope
         if k + 1 - lo < MIN_WINDOW_POSES or times[k] - times[lo] < 0.75 * self.window_s:
             return None
-        if not compiled.AVAILABLE:
-            return _window(self._poses[lo:k + 1].tolist(), 0, k + 1 - lo)
-        compiled.window_stats(self._poses, lo, k + 1, self._stats)
+        kernel = compiled.window_stats
+        if not compiled.AVAILABLE:   # the same function, interpreted
+            kernel = getattr(kernel, "py_func", kernel)
+        kernel(self._poses, lo, k + 1, self._stats)
         o = self._stats.tolist()
         return (o[0], o[1], o[2], o[3]), o[4], (o[5], o[6], o[7]), (o[8], o[9], o[10])
 
@@ -267,44 +264,3 @@ def warm_up() -> None:
         poses[:, 0] = np.arange(MIN_WINDOW_POSES)
         poses[:, 4] = 1.0
         compiled.window_stats(poses, 0, MIN_WINDOW_POSES, np.empty(compiled.POSE_WIDTH))
-
-
-def _window(poses: Sequence[Sequence[float]], lo: int, hi: int) -> _WindowStats:
-    """Over poses[lo:hi]: the mean of c (normalised, signs aligned to the first), the mean
-    time, the mean of u and MoCap's velocity (least-squares slope, the velocity at the mean
-    time). The reference of :func:`estimator.compiled.window_stats`, and the path without
-    numba."""
-    part = poses[lo:hi]
-    n = len(part)
-    _, _, _, _, c0w, c0x, c0y, c0z, _, _, _ = part[0]
-    sw = sx = sy = sz = st = sux = suy = suz = spx = spy = spz = 0.0
-    for t, px, py, pz, cw, cx, cy, cz, ux, uy, uz in part:
-        if cw * c0w + cx * c0x + cy * c0y + cz * c0z >= 0.0:
-            sw += cw
-            sx += cx
-            sy += cy
-            sz += cz
-        else:
-            sw -= cw
-            sx -= cx
-            sy -= cy
-            sz -= cz
-        st += t
-        sux += ux
-        suy += uy
-        suz += uz
-        spx += px
-        spy += py
-        spz += pz
-    norm = math.sqrt(sw * sw + sx * sx + sy * sy + sz * sz)
-    tm = st / n
-    mx, my, mz = spx / n, spy / n, spz / n
-    stt = vx = vy = vz = 0.0
-    for t, px, py, pz, *_ in part:
-        d = t - tm
-        stt += d * d
-        vx += d * (px - mx)
-        vy += d * (py - my)
-        vz += d * (pz - mz)
-    return ((sw / norm, sx / norm, sy / norm, sz / norm), tm, (sux / n, suy / n, suz / n),
-            (vx / stt, vy / stt, vz / stt))
