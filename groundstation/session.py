@@ -496,6 +496,18 @@ class FlightSession:
                                     os.getpid(), tel_opened, tel_failure))
             with stop_signals_blocked():  # it ignores them once its interpreter is up
                 tel.start()
+            # What holds the interpreter (numba's kernels, from its cache in tens of ms or, on
+            # a fresh install, compiled in tens of seconds; the rehearsal of the controller; a
+            # full GC collection) before the emulated vehicle starts, and before any device
+            # streams: an emulated board waits for the first `w` only for its first-command
+            # grace (30 s) from its own start, then free-runs, and the flight is no longer the
+            # seed's (seen: a flight after a kernel change started at 6 ms); a device's thread
+            # must be free to take and timestamp each sample (a MoCap frame held back at the
+            # stream's start reads as a server clock step)
+            computer = prepared_computer(self.params, self.mission)
+            ukf = Ukf(_estimator_config(cfg, self.params))
+            consistency.warm_up()  # its kernel too (the loop's MoCap/IMU monitor)
+            self._check_interrupted("preparing the controller")
             if isinstance(backend, EmulatedBackend):
                 # Lockstep only (that is where it is merged into the record): its writes come
                 # from the emulated board's thread, and under disk pressure a page-cache write
@@ -512,16 +524,10 @@ class FlightSession:
             fc_uri, servo_uri, mocap_uri = uris.flight_ctrl, uris.servo, uris.mocap
             zero_steps = uris.servo_zero_steps
 
-            # What holds the interpreter for tens of ms (numba's cache and the rehearsal of
-            # the controller; a full GC collection) before any device streams: a device's
-            # thread must be free to take and timestamp each sample (a MoCap frame held back
-            # at the stream's start reads as a server clock step)
-            computer = prepared_computer(self.params, self.mission)
             # Both clocks: the collections of the flight then walk only what was made since
             # (in a lockstep flight they cost ~0.5 % of its time besides, and a full one
             # 35-70 ms); realtime disables the GC in flight too (apply_realtime_settings).
             freeze_start_up_heap()
-            self._check_interrupted("preparing the controller")
 
             # The devices first: a device that cannot be opened ends the session with one
             # line naming it, before any record exists.
@@ -563,8 +569,6 @@ class FlightSession:
             else:
                 _open_device("mocap", mocap_uri, mocap.start)
             self._check_interrupted("connecting to the MoCap server")
-            ukf = Ukf(_estimator_config(cfg, self.params))  # before the IMU streams
-            consistency.warm_up()  # its kernel too (the loop's MoCap/IMU monitor)
             self._await_telemetry(tel, tel_imported)  # before the IMU streams too
             # The Flight-Ctrl last: once its IMU streams, an emulated board waits for `w` only
             # for its lockstep grace (then free-runs, and a run is no longer repeatable), so
