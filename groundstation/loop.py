@@ -346,7 +346,6 @@ class FlightLoop:
                           "reseeds_imu_link": 0, "lockstep_stalls": 0}
         self._rx_errors = 0
         self._stalled = False  # lockstep: the last sample counted lost on the wall clock
-        self._pose_num_ns = 0  # this tick's pose update (ns), part of its numerics
         self._faults_told = 0  # faults of the state machine already sent as events
         #: received / expected IMU samples over the last rate window (lockstep: from sequence
         #: numbers, so a degraded link is caught on the simulated clock too)
@@ -557,20 +556,18 @@ class FlightLoop:
             # 3. (predict part)
             imu_input = (t_s, imu.gyro_rad_s, imu.accel_m_s2,
                          force_cmd_b if tick is not None else None)
-            num_start_ns = time.perf_counter_ns()  # the numerics, timed apart (LoopTimer)
-            self.ukf.predict(*imu_input)
-            num_ns = time.perf_counter_ns() - num_start_ns
             self._imu_inputs.append(imu_input)
             self._consistency.add_imu(t_s, imu.gyro_rad_s, imu.accel_m_s2)
+            num_start_ns = time.perf_counter_ns()  # the numerics, timed apart (LoopTimer)
+            self.ukf.predict(*imu_input)
             # plain floats and one check, not the full estimate (its covariance copy and
             # health report cost as much as the predict)
-            num_start_ns = time.perf_counter_ns()
             force_ext = None
             if self.ukf.initialized:
                 est_state = VehicleState(*self.ukf.output_state())
                 force_ext = self.ukf.force_ext_w_n()
             estimator_ok = self.ukf.usable()
-            num_ns += time.perf_counter_ns() - num_start_ns
+            num_ns = time.perf_counter_ns() - num_start_ns
 
             # the periodic chores on different ticks (a tick carrying both would set the
             # compute p99 at 1 kHz): operator exchange, link check
@@ -802,9 +799,7 @@ class FlightLoop:
                     self._compare_with_imu(t_s, *compare, est_state)
             if opts.lockstep:
                 self.pose.handle_received()
-            self._pose_num_ns = 0
-            self._take_pose(t0_s, t_s, est_state)
-            num_ns += self._pose_num_ns
+            num_ns += self._take_pose(t0_s, t_s, est_state)
             eta_f = 1.0
             if tick is not None:  # the commanded body force feeds the UKF's force observer
                 force_cmd_b, eta_f = self.computer.thrust_force_b(alpha, tick.cmd.thrusts_n)
@@ -919,16 +914,18 @@ class FlightLoop:
         self._stalled = True
         return None
 
-    def _take_pose(self, t0_s: float, t_s: float, est: VehicleState) -> None:
+    def _take_pose(self, t0_s: float, t_s: float, est: VehicleState) -> int:
         """Fuse the newest pose if it is a new frame. The UKF replays from the capture time; it
         needs one IMU sample first (its clock starts with the first prediction). A re-seed
         from armed on moves the mission's reference by the estimate's step (``est``: this
         tick's estimate, before it). A fused pose is compared with the IMU alone at the next
-        tick (``_compare_next``)."""
+        tick (``_compare_next``). Returns the UKF update's time (ns; 0 without one), part of
+        the tick's numerics."""
         pose = self.pose.latest()
         if pose is None or pose.frame_number == self._last_frame:
-            return
+            return 0
         self._last_frame = pose.frame_number
+        update_ns = 0
         if pose.valid and self.mocap_distrusted:  # received, not fused
             self._last_pose_t_s = pose.t_ns * 1e-9 - t0_s
         elif pose.valid:
@@ -941,13 +938,14 @@ class FlightLoop:
             num_start_ns = time.perf_counter_ns()
             verdict = self.ukf.update_pose(cap_s, pose.pos_w_m, pose.q_wb) \
                 if math.isfinite(self.ukf.t_s) else None
-            self._pose_num_ns = time.perf_counter_ns() - num_start_ns
+            update_ns = time.perf_counter_ns() - num_start_ns
             if verdict is PoseVerdict.RESET:
                 self._judge_reset(t_s, cap_s, est)
             elif verdict is PoseVerdict.ACCEPTED or verdict is PoseVerdict.REJECTED:
                 self._compare_next = (cap_s, pose.pos_w_m, pose.q_wb)  # the next tick's
             self._last_pose_t_s = cap_s
             self._counters["poses_fused"] += 1
+        return update_ns
 
     def _act_on_transitions(self, prev: FlightState, t_s: float, est: VehicleState
                             ) -> LandHere | None:

@@ -167,8 +167,6 @@ def encode_spin_rates_hz(speeds_hz: Sequence[float], directions: Sequence[int]) 
     A rate within ``[MIN_SPIN_HZ, 500 kHz]`` (every one in flight) is converted inline:
     there ``int(500000 / rate)`` lies in 1..32767, so :func:`spin_hz_to_half_period`'s
     clamps cannot change it; any other (idle, stop, non-finite) goes through that function."""
-    if len(speeds_hz) != len(directions):
-        raise ValueError(f"{len(speeds_hz)} spin rates for {len(directions)} directions")
     periods = []
     for d, s in zip(directions, speeds_hz, strict=True):
         v = d * abs(s)
